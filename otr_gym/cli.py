@@ -1,0 +1,57 @@
+"""The ``otr`` command line: one command per job.
+
+Each job lives in its own module exposing ``configure_parser(parser)`` and ``main(args) -> int``;
+modules are imported only when their command runs, so ``otr --help`` stays instant and a
+job's heavy dependencies (mujoco_warp, torch, pinocchio) load only when needed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import sys
+
+#: command -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("otr_gym.demo", "run the whole pipeline on the embedded default (synthetic box carry)"),
+    "inspect": ("otr_gym.summary", "summarise a demonstration or reference file"),
+    "retarget": ("retarget.pipeline", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
+    "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
+    "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),
+    "evaluate": ("agents.evaluate", "success rate and MPJPE of a trained policy"),
+    "export": ("agents.export", "export a policy to ONNX with metadata"),
+    "play": ("agents.play", "render a policy tracking its reference to a video"),
+}
+
+
+def _available(module: str) -> bool:
+    return importlib.util.find_spec(module) is not None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="otr", description="OTR-Gym: mocap -> G1 references -> tracking policies -> robot.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        if not _available(module):
+            continue
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == command:
+            importlib.import_module(module).configure_parser(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(command if command in COMMANDS else None)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    return int(importlib.import_module(COMMANDS[args.command][0]).main(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,98 @@
+"""G1 geometry read from the compiled MJCF: visual meshes and collision primitives per body.
+
+Everything is expressed in the **body frame** of the link that carries it (m), so posing a
+link is ``R_body @ v + p_body`` with the body pose from MuJoCo or Pinocchio forward
+kinematics. MuJoCo recentres meshes at compile time and folds the offset into the geom pose;
+reading the compiled model keeps both consistent.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import mujoco
+import numpy as np
+
+from otr_gym import robot
+from otr_gym.rotations import quat_to_matrix
+
+VISUAL_GROUP = 2
+COLLISION_GROUP = 3
+
+
+@dataclass(frozen=True)
+class LinkMesh:
+    """A link's visual surface in its body frame (all visual geoms of the body merged)."""
+
+    body: str
+    vertices: np.ndarray  # (V, 3) m, body frame
+    faces: np.ndarray  # (F, 3) int
+
+    @property
+    def area_m2(self) -> float:
+        tri = self.vertices[self.faces]
+        return float(0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum())
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """A collision capsule (or sphere when half_length = 0) in its body frame."""
+
+    body: str
+    name: str
+    p0: np.ndarray  # (3,) segment end, body frame
+    p1: np.ndarray  # (3,)
+    radius: float
+
+
+@lru_cache(maxsize=1)
+def _model() -> mujoco.MjModel:
+    return robot.load_mujoco_model(visual=True)
+
+
+@lru_cache(maxsize=1)
+def visual_meshes() -> dict[str, LinkMesh]:
+    """Body name -> merged visual mesh in the body frame, for every G1 body with one."""
+    m = _model()
+    parts: dict[str, tuple[list, list, int]] = {}
+    for g in range(m.ngeom):
+        if int(m.geom_type[g]) != int(mujoco.mjtGeom.mjGEOM_MESH) or m.geom_group[g] != VISUAL_GROUP:
+            continue
+        body = m.body(m.geom_bodyid[g]).name
+        mid = m.geom_dataid[g]
+        v0, nv = m.mesh_vertadr[mid], m.mesh_vertnum[mid]
+        f0, nf = m.mesh_faceadr[mid], m.mesh_facenum[mid]
+        verts = m.mesh_vert[v0:v0 + nv] @ quat_to_matrix(m.geom_quat[g]).T + m.geom_pos[g]
+        faces = m.mesh_face[f0:f0 + nf]
+        vs, fs, n = parts.get(body, ([], [], 0))
+        vs.append(verts)
+        fs.append(faces + n)
+        parts[body] = (vs, fs, n + nv)
+    return {b: LinkMesh(b, np.concatenate(vs).astype(np.float64), np.concatenate(fs).astype(np.int64))
+            for b, (vs, fs, _) in parts.items()}
+
+
+@lru_cache(maxsize=1)
+def collision_capsules() -> tuple[Capsule, ...]:
+    """Capsules and spheres of the collision geoms (group 3), foot capsules included."""
+    m = _model()
+    out = []
+    for g in range(m.ngeom):
+        if m.geom_group[g] != COLLISION_GROUP:
+            continue
+        kind = int(m.geom_type[g])
+        if kind not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)):
+            continue
+        half = m.geom_size[g, 1] if kind == int(mujoco.mjtGeom.mjGEOM_CAPSULE) else 0.0
+        axis = quat_to_matrix(m.geom_quat[g])[:, 2]
+        c = m.geom_pos[g]
+        out.append(Capsule(m.body(m.geom_bodyid[g]).name, m.geom(g).name, c - half * axis, c + half * axis,
+                           float(m.geom_size[g, 0])))
+    return tuple(out)
+
+
+def posed_vertices(mesh: LinkMesh, pos_w: np.ndarray, quat_w: np.ndarray) -> np.ndarray:
+    """World vertices (…, V, 3) of a link mesh for body poses (…, 3) / (…, 4) wxyz."""
+    rot = quat_to_matrix(np.asarray(quat_w, np.float64))
+    return np.einsum("...ij,vj->...vi", rot, mesh.vertices) + np.asarray(pos_w)[..., None, :]

@@ -1,0 +1,304 @@
+"""Quaternion and SO(3) maths: the one implementation used by every package.
+
+Conventions: quaternions are **wxyz** (scalar first) unless a name says ``xyzw``; rotation
+vectors (axis·angle, radians) are the SO(3) log; rotation matrices act on column vectors.
+Every function is batched over leading axes and accepts NumPy arrays or torch tensors
+(returning the same kind), so the retargeter (NumPy) and the environments (torch, GPU)
+share the same maths.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:
+    import torch
+except ImportError:  # pragma: no cover - torch is a hard dependency, kept optional here
+    torch = None
+
+
+def _is_torch(x) -> bool:
+    return torch is not None and isinstance(x, torch.Tensor)
+
+
+def _stack(xs, axis: int = -1):
+    return torch.stack(xs, dim=axis) if _is_torch(xs[0]) else np.stack(xs, axis=axis)
+
+
+def _norm(x, keepdims: bool = False):
+    if _is_torch(x):
+        return torch.linalg.norm(x, dim=-1, keepdim=keepdims)
+    return np.linalg.norm(x, axis=-1, keepdims=keepdims)
+
+
+def _where(c, a, b):
+    return torch.where(c, a, b) if _is_torch(c) else np.where(c, a, b)
+
+
+def _clip(x, lo, hi):
+    return torch.clamp(x, lo, hi) if _is_torch(x) else np.clip(x, lo, hi)
+
+
+def _atan2(y, x):
+    return torch.atan2(y, x) if _is_torch(y) else np.arctan2(y, x)
+
+
+def _sin(x):
+    return torch.sin(x) if _is_torch(x) else np.sin(x)
+
+
+def _cos(x):
+    return torch.cos(x) if _is_torch(x) else np.cos(x)
+
+
+def _sqrt(x):
+    return torch.sqrt(x) if _is_torch(x) else np.sqrt(x)
+
+
+def _as_float(x):
+    if _is_torch(x):
+        return x if x.is_floating_point() else x.float()
+    return np.asarray(x, dtype=np.float64) if np.asarray(x).dtype.kind != "f" else np.asarray(x)
+
+
+# ------------------------------------------------------------------ conversions
+
+
+def xyzw_to_wxyz(q):
+    return q[..., [3, 0, 1, 2]]
+
+
+def wxyz_to_xyzw(q):
+    return q[..., [1, 2, 3, 0]]
+
+
+def quat_normalize(q):
+    q = _as_float(q)
+    return q / _norm(q, keepdims=True)
+
+
+def quat_canonical(q):
+    """Sign-fix so that w ≥ 0 (q and −q are the same rotation)."""
+    return _where(q[..., :1] < 0, -q, q)
+
+
+# ------------------------------------------------------------------ algebra
+
+
+def quat_mul(a, b):
+    """Hamilton product a ⊗ b (wxyz)."""
+    aw, ax, ay, az = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bw, bx, by, bz = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return _stack([
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+    ])
+
+
+def quat_conj(q):
+    """Conjugate = inverse for unit quaternions."""
+    return _stack([q[..., 0], -q[..., 1], -q[..., 2], -q[..., 3]])
+
+
+def quat_apply(q, v):
+    """Rotate vectors v (…, 3) by unit quaternions q (…, 4)."""
+    w, xyz = q[..., :1], q[..., 1:]
+    t = 2.0 * _cross(xyz, v)
+    return v + w * t + _cross(xyz, t)
+
+
+def quat_apply_inverse(q, v):
+    """Rotate v by q⁻¹ (world → body frame when q is the body orientation)."""
+    return quat_apply(quat_conj(q), v)
+
+
+def _cross(a, b):
+    if _is_torch(a):
+        return torch.cross(*torch.broadcast_tensors(a, b), dim=-1)
+    return np.cross(a, b)
+
+
+# ------------------------------------------------------------------ exp / log
+
+
+def quat_from_rotvec(r):
+    """SO(3) exp: rotation vector (…, 3) → unit quaternion (…, 4)."""
+    r = _as_float(r)
+    angle = _norm(r, keepdims=True)
+    half = 0.5 * angle
+    small = angle < 1e-8
+    # sin(θ/2)/θ, with its Taylor expansion near 0
+    k = _where(small, 0.5 - angle**2 / 48.0, _sin(half) / _where(small, 1.0 + 0 * angle, angle))
+    xyz = k * r
+    return _stack([_cos(half)[..., 0], xyz[..., 0], xyz[..., 1], xyz[..., 2]])
+
+
+def quat_to_rotvec(q):
+    """SO(3) log: unit quaternion → rotation vector (angle in [0, π])."""
+    q = quat_canonical(_as_float(q))
+    xyz = q[..., 1:]
+    s = _norm(xyz, keepdims=True)
+    angle = 2.0 * _atan2(s, q[..., :1])
+    small = s < 1e-8
+    k = _where(small, 2.0 / _where(small, q[..., :1], 1.0 + 0 * s), angle / _where(small, 1.0 + 0 * s, s))
+    return k * xyz
+
+
+def quat_angle(q):
+    """Rotation angle of q in [0, π]."""
+    q = _as_float(q)
+    return 2.0 * _atan2(_norm(q[..., 1:]), _abs(q[..., 0]))
+
+
+def _abs(x):
+    return torch.abs(x) if _is_torch(x) else np.abs(x)
+
+
+def quat_error_angle(a, b):
+    """Angle (rad) of the rotation between a and b."""
+    return quat_angle(quat_mul(quat_conj(a), b))
+
+
+# ------------------------------------------------------------------ matrices
+
+
+def quat_to_matrix(q):
+    """Unit quaternion (…, 4) → rotation matrix (…, 3, 3)."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = [
+        _stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)]),
+        _stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)]),
+        _stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]),
+    ]
+    return _stack(rows, axis=-2)
+
+
+def matrix_to_quat(m):
+    """Rotation matrix (…, 3, 3) → unit quaternion (…, 4), w ≥ 0 (Shepperd's method)."""
+    m = _as_float(m)
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    candidates = _stack([
+        _stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]]),
+        _stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]]),
+        _stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1], 1 - m00 + m11 - m22, m[..., 2, 1] + m[..., 1, 2]]),
+        _stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 2, 1] + m[..., 1, 2], 1 - m00 - m11 + m22]),
+    ], axis=-2)  # (…, 4 candidates, 4)
+    diag = _stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22])
+    if _is_torch(m):
+        best = torch.argmax(diag, dim=-1)
+        q = torch.gather(candidates, -2, best[..., None, None].expand(*best.shape, 1, 4))[..., 0, :]
+    else:
+        best = np.argmax(diag, axis=-1)
+        q = np.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
+    return quat_canonical(quat_normalize(q))
+
+
+def so3_exp(r):
+    """Rotation vector (…, 3) → rotation matrix (…, 3, 3)."""
+    return quat_to_matrix(quat_from_rotvec(r))
+
+
+def so3_log(m):
+    """Rotation matrix (…, 3, 3) → rotation vector (…, 3)."""
+    return quat_to_rotvec(matrix_to_quat(m))
+
+
+def skew(v):
+    """[v]× (…, 3, 3) such that skew(v) @ u = v × u."""
+    z = 0 * v[..., 0]
+    return _stack([
+        _stack([z, -v[..., 2], v[..., 1]]),
+        _stack([v[..., 2], z, -v[..., 0]]),
+        _stack([-v[..., 1], v[..., 0], z]),
+    ], axis=-2)
+
+
+# ------------------------------------------------------------------ yaw, gravity, 6D
+
+
+def quat_yaw(q):
+    """The yaw-only part of q (rotation about world z), wxyz."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    yaw = _atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    zero = 0 * yaw
+    return _stack([_cos(0.5 * yaw), zero, zero, _sin(0.5 * yaw)])
+
+
+def quat_from_yaw(yaw):
+    zero = 0 * yaw
+    return _stack([_cos(0.5 * yaw), zero, zero, _sin(0.5 * yaw)])
+
+
+def quat_from_euler_xyz(roll, pitch, yaw):
+    """q = Rz(yaw)·Ry(pitch)·Rx(roll) (extrinsic x-y-z), wxyz."""
+    zero = 0 * roll
+    qx = _stack([_cos(0.5 * roll), _sin(0.5 * roll), zero, zero])
+    qy = _stack([_cos(0.5 * pitch), zero, _sin(0.5 * pitch), zero])
+    qz = _stack([_cos(0.5 * yaw), zero, zero, _sin(0.5 * yaw)])
+    return quat_mul(qz, quat_mul(qy, qx))
+
+
+def projected_gravity(q):
+    """World gravity direction (0, 0, −1) expressed in the body frame of q."""
+    if _is_torch(q):
+        g = torch.zeros(*q.shape[:-1], 3, dtype=q.dtype, device=q.device)
+    else:
+        g = np.zeros((*q.shape[:-1], 3))
+    g[..., 2] = -1.0
+    return quat_apply_inverse(q, g)
+
+
+def matrix_first_two_columns(q):
+    """The 6-D orientation feature: first two columns of R(q), flattened row-major (…, 6)."""
+    m = quat_to_matrix(q)[..., :, :2]
+    return m.reshape(*m.shape[:-2], 6)
+
+
+# ------------------------------------------------------------------ time derivatives
+
+
+def angular_velocity_from_quats(q, dt: float):
+    """World-frame angular velocity (rad/s) of a quaternion track (T, …, 4) by central differences.
+
+    ω_t = log(q_{t+1} ⊗ q_{t−1}⁻¹) / (2 dt) inside; one-sided at the ends.
+    """
+    q = _as_float(q)
+    if q.shape[0] < 2:
+        return 0 * q[..., 1:]
+    fwd = quat_to_rotvec(quat_mul(q[1:], quat_conj(q[:-1]))) / dt  # (T-1, …, 3)
+    if _is_torch(q):
+        out = torch.empty(*q.shape[:-1], 3, dtype=q.dtype, device=q.device)
+    else:
+        out = np.empty((*q.shape[:-1], 3))
+    out[0], out[-1] = fwd[0], fwd[-1]
+    if q.shape[0] > 2:
+        out[1:-1] = quat_to_rotvec(quat_mul(q[2:], quat_conj(q[:-2]))) / (2 * dt)
+    return out
+
+
+def linear_velocity_from_positions(p, dt: float):
+    """Velocity (T, …, 3) of a position track by central differences, one-sided at the ends."""
+    p = _as_float(p)
+    if p.shape[0] < 2:
+        return 0 * p
+    if _is_torch(p):
+        return torch.gradient(p, spacing=dt, dim=0)[0]
+    return np.gradient(p, dt, axis=0)
+
+
+def quat_slerp(a, b, t):
+    """Spherical interpolation between unit quaternions a and b at fraction t (broadcast)."""
+    a, b = _as_float(a), _as_float(b)
+    dot = (a * b).sum(-1) if _is_torch(a) else np.sum(a * b, axis=-1)
+    b = _where(dot[..., None] < 0, -b, b)
+    dot = _abs(dot)
+    theta = _atan2(_sqrt(_clip(1 - dot**2, 0.0, 1.0)), dot)
+    small = theta < 1e-6
+    safe = _where(small, 1.0 + 0 * theta, _sin(theta))
+    wa = _where(small, 1 - t, _sin((1 - t) * theta) / safe)
+    wb = _where(small, t, _sin(t * theta) / safe)
+    return quat_normalize(wa[..., None] * a + wb[..., None] * b)
+
+
