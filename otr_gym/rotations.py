@@ -215,6 +215,38 @@ def skew(v):
     ], axis=-2)
 
 
+def so3_left_jacobian_inverse(r):
+    """J_l⁻¹(r) (…, 3, 3): log(exp(δ) exp(r)) ≈ r + J_l⁻¹(r) δ for a small world-frame δ.
+
+    J_l⁻¹ = I − ½[r]× + (1/θ² − (1 + cos θ)/(2θ sin θ)) [r]×², with the series 1/12 + θ²/720 near 0.
+    """
+    r = _as_float(r)
+    theta = _norm(r)
+    small = theta < 1e-4
+    safe = _where(small, 1.0 + 0 * theta, theta)
+    coef = _where(small, 1.0 / 12.0 + theta**2 / 720.0,
+                  1.0 / safe**2 - (1.0 + _cos(safe)) / (2.0 * safe * _sin(safe)))
+    k = skew(r)
+    eye = torch.eye(3, dtype=r.dtype, device=r.device) if _is_torch(r) else np.eye(3)
+    return eye - 0.5 * k + coef[..., None, None] * (k @ k)
+
+
+def quat_from_vector_pairs(a_from, b_from, a_to, b_to):
+    """The rotation taking direction a_from exactly onto a_to, with b_from turned into the
+    half-plane spanned by a_to and b_to (the TRIAD method). The b's only fix the roll about a:
+    they need not be unit nor orthogonal to a, only not parallel to it. Returns wxyz (…, 4).
+    """
+
+    def frame(a, b):  # orthonormal columns (a, b ⟂ a, a × b)
+        e1 = a / _norm(a, keepdims=True)
+        e2 = b - (e1 * b).sum(-1)[..., None] * e1
+        e2 = e2 / _norm(e2, keepdims=True)
+        return _stack([e1, e2, _cross(e1, e2)], axis=-1)
+
+    f_from, f_to = frame(_as_float(a_from), _as_float(b_from)), frame(_as_float(a_to), _as_float(b_to))
+    return matrix_to_quat(f_to @ f_from.swapaxes(-1, -2))
+
+
 # ------------------------------------------------------------------ yaw, gravity, 6D
 
 

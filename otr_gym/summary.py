@@ -63,7 +63,6 @@ def reference_summary(ref: Reference) -> list[tuple[str, str]]:
 
 def demonstration_summary(path: Path, object_mesh: Path | None) -> list[tuple[str, str]]:
     from retarget.demos import load_demonstration
-    from retarget.human import posed_demonstration_vertices
     from retarget.meshes import as_trimesh, signed_distance
     from otr_gym.rotations import quat_apply_inverse
 
@@ -73,7 +72,8 @@ def demonstration_summary(path: Path, object_mesh: Path | None) -> list[tuple[st
         ("frames", f"{demo.num_frames} @ {demo.fps:g} fps ({demo.duration_s:.2f} s)"),
         ("human", f"{len(demo.part_names)} parts, stature {demo.stature_m:.2f} m"),
     ]
-    verts, part_of_vertex = posed_demonstration_vertices(demo)  # (T, V, 3), (V,)
+    verts = demo.human_vertices_w()  # (T, V, 3) world
+    part_of_vertex = demo.surface.vertex_part  # (V,)
     lowest = verts[..., 2].min(axis=1)
     rows.append(("lowest point", f"{lowest.min() * 1e3:.1f} – {lowest.max() * 1e3:.1f} mm above ground"))
     on_ground = [demo.part_names[k] for k in range(len(demo.part_names))
