@@ -1,12 +1,16 @@
-"""Offscreen pictures of references: the G1 (and its objects) replayed kinematically.
+"""Offscreen pictures: the G1 and rigid meshes (objects, human parts) replayed kinematically.
 
-Uses MuJoCo's offscreen renderer (``MUJOCO_GL=egl`` on a GPU or Mesa, ``osmesa`` otherwise;
-EGL is the default when nothing is set).
+One renderer for everything we show: a scene of the G1 (optional) plus any number of rigid
+mesh tracks (``RigidTrack``: mesh in its own frame + world poses per frame), built once as
+MuJoCo mocap bodies and posed frame by frame. References give the G1 and their objects;
+demonstrations give one track per human part and per object (``retarget`` builds those).
+Uses MuJoCo's offscreen renderer (``MUJOCO_GL=egl`` by default; ``osmesa`` also works).
 """
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,52 +20,119 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco  # noqa: E402
 
 from otr_gym.reference import Reference  # noqa: E402
-from otr_gym.scene import ObjectSpec, SceneSpec, build_scene  # noqa: E402
+from otr_gym.robot import G1_MJCF  # noqa: E402
+from otr_gym.scene import GROUND_XML  # noqa: E402
+
+HUMAN_RGBA = (0.85, 0.72, 0.55, 1.0)
+OBJECT_RGBA = (0.8, 0.55, 0.3, 1.0)
 
 
-def reference_scene(ref: Reference) -> mujoco.MjModel:
-    """G1 + ground + the reference's objects (embedded meshes, else a 30 cm cube)."""
-    objects = tuple(
-        ObjectSpec(o.name, vertices=o.mesh_vertices, faces=o.mesh_faces) if o.mesh_vertices is not None
-        else ObjectSpec(o.name, box_half_extents=(0.15, 0.15, 0.15))
-        for o in ref.objects)
-    return build_scene(SceneSpec(objects=objects)).model
+@dataclass(frozen=True)
+class RigidTrack:
+    """A rigid mesh (object frame, m) and its world poses over time (T, 3) / (T, 4) wxyz."""
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    pos_w: np.ndarray
+    quat_w: np.ndarray
+    rgba: tuple[float, float, float, float] = OBJECT_RGBA
 
 
-def render_frames(ref: Reference, frames, width: int = 320, height: int = 400,
-                  azimuth_deg: float = 120.0, distance_m: float = 3.0) -> list[np.ndarray]:
-    """RGB images (H, W, 3) of the reference at the given frame indices; camera follows the pelvis."""
-    model = reference_scene(ref)
-    data = mujoco.MjData(model)
-    qpos = ref.qpos()
-    cam = mujoco.MjvCamera()
-    cam.azimuth, cam.elevation, cam.distance = azimuth_deg, -12.0, distance_m
-    images = []
-    with mujoco.Renderer(model, height, width) as renderer:
-        for t in frames:
-            data.qpos[:36] = qpos[t]
-            for i, o in enumerate(ref.objects):
-                data.qpos[36 + 7 * i: 36 + 7 * i + 7] = np.concatenate([o.pos_w[t], o.quat_w[t]])
-            mujoco.mj_forward(model, data)
-            cam.lookat[:] = [qpos[t, 0], qpos[t, 1], 0.7]
-            renderer.update_scene(data, camera=cam)
-            images.append(renderer.render().copy())
-    return images
+@dataclass(frozen=True)
+class Camera:
+    """Free camera following a target point (m, world)."""
+
+    azimuth_deg: float = 120.0
+    elevation_deg: float = -12.0
+    distance_m: float = 3.2
+    lookat_height_m: float = 0.7
 
 
-def save_strip(images: list[np.ndarray], path: str | Path) -> Path:
-    """Concatenate images left to right (2 px white gaps) and write a PNG atomically."""
+def reference_tracks(ref: Reference) -> list[RigidTrack]:
+    """The reference's objects as tracks (embedded meshes; a 30 cm cube when none is stored)."""
+    import trimesh
+
+    cube = trimesh.creation.box((0.3, 0.3, 0.3))
+    return [RigidTrack(o.name, o.mesh_vertices if o.mesh_vertices is not None else cube.vertices,
+                       o.mesh_faces if o.mesh_faces is not None else cube.faces, o.pos_w, o.quat_w)
+            for o in ref.objects]
+
+
+class SceneRenderer:
+    """Renders frames of a G1 trajectory and rigid tracks with one compiled model."""
+
+    def __init__(self, tracks: list[RigidTrack], robot: bool = True, width: int = 320, height: int = 400,
+                 camera: Camera = Camera()):
+        spec = mujoco.MjSpec.from_file(str(G1_MJCF)) if robot else mujoco.MjSpec()
+        ground = mujoco.MjSpec.from_file(str(GROUND_XML))
+        spec.attach(ground, prefix="ground/", frame=spec.worldbody.add_frame())
+        spec.visual.global_.offwidth, spec.visual.global_.offheight = max(width, 640), max(height, 480)
+        for k, track in enumerate(tracks):
+            body = spec.worldbody.add_body(name=f"track{k}_{track.name}", mocap=True)
+            spec.add_mesh(name=f"track{k}_mesh", uservert=np.asarray(track.vertices, np.float64).ravel().tolist(),
+                          userface=np.asarray(track.faces, np.int32).ravel().tolist())
+            body.add_geom(type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"track{k}_mesh", rgba=list(track.rgba),
+                          contype=0, conaffinity=0)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self.tracks = tracks
+        self.robot = robot
+        self.camera = camera
+        self.size = (height, width)
+
+    def render(self, frames, robot_qpos: np.ndarray | None = None, follow: np.ndarray | None = None) -> list[np.ndarray]:
+        """RGB images (H, W, 3) at ``frames``; ``robot_qpos`` (T, 36) poses the G1; the camera
+        looks at ``follow`` (T, 3) when given, else at the robot root or the first track."""
+        cam = mujoco.MjvCamera()
+        cam.azimuth, cam.elevation, cam.distance = (self.camera.azimuth_deg, self.camera.elevation_deg,
+                                                     self.camera.distance_m)
+        images = []
+        with mujoco.Renderer(self.model, *self.size) as renderer:
+            for t in frames:
+                if self.robot and robot_qpos is not None:
+                    self.data.qpos[:36] = robot_qpos[t]
+                for k, track in enumerate(self.tracks):
+                    self.data.mocap_pos[k] = track.pos_w[t]
+                    self.data.mocap_quat[k] = track.quat_w[t]
+                mujoco.mj_forward(self.model, self.data)
+                target = (follow[t] if follow is not None else
+                          robot_qpos[t, :3] if robot_qpos is not None else self.tracks[0].pos_w[t])
+                cam.lookat[:] = [target[0], target[1], self.camera.lookat_height_m]
+                renderer.update_scene(self.data, camera=cam)
+                images.append(renderer.render().copy())
+        return images
+
+
+def render_reference(ref: Reference, frames, **kw) -> list[np.ndarray]:
+    return SceneRenderer(reference_tracks(ref), robot=True, **kw).render(frames, robot_qpos=ref.qpos())
+
+
+def save_png(image: np.ndarray, path: str | Path) -> Path:
+    """Write an RGB image atomically (temporary file + rename)."""
     import imageio.v3 as iio
 
-    gap = np.full((images[0].shape[0], 2, 3), 255, np.uint8)
-    strip = np.concatenate([x for img in images for x in (img, gap)][:-1], axis=1)
     path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    iio.imwrite(tmp, strip, extension=".png")
+    iio.imwrite(tmp, image, extension=".png")
     os.replace(tmp, path)
     return path
 
 
+def strip(images: list[np.ndarray], gap_px: int = 2) -> np.ndarray:
+    """Images side by side with white gaps."""
+    gap = np.full((images[0].shape[0], gap_px, 3), 255, np.uint8)
+    return np.concatenate([x for img in images for x in (img, gap)][:-1], axis=1)
+
+
+def grid(rows: list[list[np.ndarray]], gap_px: int = 2) -> np.ndarray:
+    """Rows of images (each row a strip) stacked vertically with white gaps."""
+    strips = [strip(r, gap_px) for r in rows]
+    gap = np.full((gap_px, strips[0].shape[1], 3), 255, np.uint8)
+    return np.concatenate([x for s in strips for x in (s, gap)][:-1], axis=0)
+
+
 def save_reference_strip(ref: Reference, path: str | Path, count: int = 6, **kw) -> Path:
     frames = np.linspace(0, ref.num_frames - 1, count).round().astype(int)
-    return save_strip(render_frames(ref, frames, **kw), path)
+    return save_png(strip(render_reference(ref, frames, **kw)), path)
