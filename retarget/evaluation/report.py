@@ -1,0 +1,97 @@
+"""Reports of an evaluation: the paper-style table (Tables I–III) and the JSON record.
+
+Both work from the JSON-ready records (``SequenceResult.as_dict``), so a resumed evaluation
+reports sequences scored in an earlier run exactly like fresh ones.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+from retarget.evaluation.sequence import TABLE_COLUMNS, dataset_medians
+
+#: Column groups of the table: (title, first column key, last column key).
+_GROUPS = (("Ground", "ground_dd_m", "clear_m"), ("Object", "object_dd_m", "drift_m"))
+
+
+def _cell(value, factor: float, digits: int) -> str:
+    if value is None or not math.isfinite(value):
+        return "–"
+    return f"{value * factor:.{digits}f}"
+
+
+def format_table(records: list[dict], medians: bool | None = None) -> str:
+    """Rows = sequences (and their median when there are several demonstrations), columns =
+    the paper's metrics: sc, rot, self | ground dd R P J skate clear | object dd dw R P J drift."""
+    names = [r["name"] for r in records]
+    rows = [[r["name"]] + [_cell(r["metrics"].get(k), f, dg) for k, _, _, f, dg in TABLE_COLUMNS] for r in records]
+    if medians is None:
+        medians = len({r["demonstration"] for r in records}) > 1
+    if medians:
+        med = dataset_medians([r["metrics"] for r in records])
+        rows.append([f"median ({len(records)} sequences)"] + [_cell(med.get(k), f, dg) for k, _, _, f, dg in TABLE_COLUMNS])
+    header = ["Reference"] + [h for _, h, _, _, _ in TABLE_COLUMNS]
+    units = [""] + [u for _, _, u, _, _ in TABLE_COLUMNS]
+    width = [max(len(x) for x in col) for col in zip(header, units, *rows)]
+    width[0] = max(width[0], max((len(n) for n in names), default=0))
+    keys = [None] + [k for k, _, _, _, _ in TABLE_COLUMNS]
+
+    def line(cells):
+        out = []
+        for i, (c, wd) in enumerate(zip(cells, width)):
+            sep = " | " if keys[i] in {g[1] for g in _GROUPS} else " "
+            out.append((sep if i else "") + (c.ljust(wd) if i == 0 else c.rjust(wd)))
+        return "".join(out)
+
+    title = [""] * len(header)
+    for name, first, _ in _GROUPS:
+        title[keys.index(first)] = name
+    lines = [line(title), line(header), line(units), "-" * len(line(header))]
+    lines += [line(r) for r in rows]
+    return "\n".join(lines)
+
+
+def format_scale_notes(records: list[dict]) -> str:
+    """One line per sequence: the scale used and how well the trajectory fit supports it."""
+    out = []
+    for r in records:
+        s = r["scale"]
+        fit = "fit unavailable" if s["fit_sc"] is None else (
+            f"fit {s['fit_sc']:.4f}, rms {s['fit_rms_m'] * 1000:.1f} mm, R² {s['fit_r2']:.4f}")
+        out.append(f"{r['name']}: sc {s['sc']:.4f} ({s['source']}; {fit}; robot height / stature "
+                   f"{s['stature_sc']:.4f})")
+    return "\n".join(out)
+
+
+def write_json(path: str | Path, payload: dict) -> Path:
+    """Write ``payload`` as JSON atomically (temporary file in the same folder, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(payload, f, indent=1, ensure_ascii=False, allow_nan=False)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a report is meant to be read by others
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_json(path: str | Path) -> dict:
+    """An earlier evaluation record; a corrupt file raises ValueError naming it."""
+    path = Path(path)
+    try:
+        with path.open(encoding="utf-8") as f:
+            data = json.load(f)
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{path}: not a readable evaluation JSON ({exc})") from exc
+    sequences = data.get("sequences") if isinstance(data, dict) else None
+    if not isinstance(sequences, list):  # a bad file, not a bad argument: ValueError like the rest
+        raise ValueError(f"{path}: not an evaluation JSON (no 'sequences' list)")  # noqa: TRY004
+    return data
