@@ -1,0 +1,291 @@
+"""Throughput of OTR-G1-Track-v0: env-steps/s vs num_envs on MuJoCo-Warp, against the raw
+MuJoCo-Warp physics of the same model, plus the single CPU env (MuJoCo).
+
+For every num_envs, one vector env (training configuration: randomisation and noise on) runs
+random actions; three rates are measured on it, in env-steps/s (one env-step = 4 physics
+steps at 200 Hz):
+
+- ``env``: the full ``step`` (actions → PD → physics graph → rewards/terminations → resets → obs);
+- ``backend``: the env's physics graph alone (physics + contact-force maxima + kinematics refresh);
+- ``raw``: a graph of nothing but ``decimation`` × ``mujoco_warp.step`` on the same Model/Data
+  (with the env's contact sensors); ``raw_bare``: the same on the G1 without contact sensors,
+  standing keyframe, no resets (the setting of docs/DEVICE.md).
+
+``env/raw`` is the share of the raw physics ceiling the env keeps. Before timing, two checks run
+on CUDA: no torch host synchronisation inside ``step`` (``torch.cuda.set_sync_debug_mode``),
+and torch reads of the state views see the graph's writes without an explicit synchronise.
+
+Usage::
+
+    python benchmarks/env_throughput.py --device cuda --num-envs 1024 2048 4096 8192 16384 --out out/env_throughput.json
+    python benchmarks/env_throughput.py --device cpu --num-envs 4 8 --steps 20 --cpu-steps 200 --out /tmp/tp.json
+
+Writes the table to stdout, and the results to ``--out`` (JSON) and the same stem with ``.md``.
+On a fresh GPU machine the first size also pays MuJoCo-Warp's kernel compilation (minutes;
+cached in ~/.cache/warp): under a per-command time limit, warm the cache first with
+``--num-envs 1024 --steps 10 --cpu-steps 0``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import platform
+import sys
+import time
+import traceback
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout without installing
+
+
+def _sync(device: torch.device) -> None:
+    import warp as wp
+
+    wp.synchronize()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _rate(fn, steps: int, num_envs: int, device: torch.device) -> tuple[float, float]:
+    """(env-steps/s, ms per call) of ``fn`` called ``steps`` times."""
+    _sync(device)
+    start = time.perf_counter()
+    for i in range(steps):
+        fn(i)
+    _sync(device)
+    elapsed = time.perf_counter() - start
+    return num_envs * steps / elapsed, 1e3 * elapsed / steps
+
+
+def _checks(task, actions) -> dict:
+    """CUDA only: sync-free step, and stream ordering between warp graphs and torch reads."""
+    import warp as wp
+
+    out = {}
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        for i in range(5):
+            task.step(actions[i % len(actions)])
+        out["host_sync_in_step"] = False
+    except RuntimeError as exc:
+        out["host_sync_in_step"] = f"yes: {exc}".splitlines()[0]
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    mismatches = 0
+    for i in range(5):
+        task.step(actions[i % len(actions)])
+        seen = task.backend.body_pos_w.clone()  # last written by a warp graph; torch read, no synchronise
+        wp.synchronize()
+        mismatches += int(not torch.equal(seen, task.backend.body_pos_w))
+    out["stale_reads"] = mismatches
+    return out
+
+
+def _capture_steps(model, data, decimation: int, device):
+    """A graph of ``decimation`` bare ``mujoco_warp.step`` calls."""
+    import mujoco_warp as mjw
+    import warp as wp
+
+    with wp.ScopedDevice(device):
+        with wp.ScopedCapture(device=device) as capture:
+            for _ in range(decimation):
+                mjw.step(model, data)
+    return capture.graph
+
+
+def _bare_world(num_envs: int, device, nconmax: int, njmax: int):
+    """(Model, Data) of the G1 + ground without contact sensors: the setting of docs/DEVICE.md."""
+    import mujoco
+    import mujoco_warp as mjw
+    import warp as wp
+
+    from envs.backends import build_sim_model
+
+    model = build_sim_model(())
+    data = mujoco.MjData(model)
+    mujoco.mj_resetDataKeyframe(model, data, 0)
+    with wp.ScopedDevice(device):
+        m = mjw.put_model(model)
+        m.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
+        d = mjw.put_data(model, data, nworld=num_envs, nconmax=nconmax, njmax=njmax)
+    return m, d
+
+
+def bench_vector(reference, num_envs: int, device: str, steps: int, warmup: int, final_obs: bool, seed: int) -> dict:
+    import warp as wp
+
+    from envs.config import load_track_config
+    from envs.tracking import make_task
+
+    free_before = torch.cuda.mem_get_info()[0] if device.startswith("cuda") else None
+    cfg = load_track_config()
+    cfg.final_obs = final_obs
+    t0 = time.perf_counter()
+    task = make_task(reference, num_envs, "warp", device, cfg=cfg, seed=seed)
+    build_s = time.perf_counter() - t0
+    dev = task.device
+    gen = torch.Generator(device=dev).manual_seed(seed)
+    actions = [0.5 * torch.randn(num_envs, 29, device=dev, generator=gen) for _ in range(16)]
+    t0 = time.perf_counter()
+    task.step(actions[0])
+    _sync(dev)
+    first_step_s = time.perf_counter() - t0
+    for i in range(warmup):
+        task.step(actions[i % 16])
+    row = {"num_envs": num_envs, "build_s": round(build_s, 2), "first_step_s": round(first_step_s, 2)}
+    if dev.type == "cuda":
+        row.update(_checks(task, actions))
+    row["env_steps_per_s"], row["env_ms_per_step"] = _rate(lambda i: task.step(actions[i % 16]), steps, num_envs, dev)
+    if free_before is not None:
+        _sync(dev)
+        row["device_mem_gib"] = (free_before - torch.cuda.mem_get_info()[0]) / 2**30
+
+    # Physics alone, from the standing start every 50 steps (as the env's resets keep robots up).
+    backend = task.backend
+    wp_device = wp.get_device(str(dev))
+    everyone = torch.ones(num_envs, dtype=torch.bool, device=dev)
+    qpos0, qvel0 = task.command.start_state(noise=False)
+    ctrl = task.default_joint_pos.clone()
+
+    def physics(launch):
+        def run(i):
+            if i % 50 == 0:
+                backend.reset(everyone, qpos0, qvel0)
+            launch()
+        return run
+
+    row["backend_steps_per_s"], row["backend_ms_per_step"] = _rate(
+        physics(lambda: backend.step(ctrl)), steps, num_envs, dev)
+    raw = _capture_steps(backend.warp_model, backend.warp_data, backend.decimation, wp_device)
+    row["raw_steps_per_s"], row["raw_ms_per_step"] = _rate(
+        physics(lambda: wp.capture_launch(raw)), steps, num_envs, dev)
+    row["env_over_raw"] = row["env_steps_per_s"] / row["raw_steps_per_s"]
+    row["contacts_per_world"] = float(backend.warp_data.nacon.numpy()[0]) / num_envs
+
+    # The same without contact sensors, standing keyframe, no resets: comparable to docs/DEVICE.md.
+    bare_m, bare_d = _bare_world(num_envs, wp_device, cfg.sim.nconmax, cfg.sim.njmax)
+    bare = _capture_steps(bare_m, bare_d, backend.decimation, wp_device)
+    row["raw_bare_steps_per_s"], _ = _rate(lambda i: wp.capture_launch(bare), steps, num_envs, dev)
+    return row
+
+
+def bench_cpu_single(reference, steps: int, seed: int) -> dict:
+    """gymnasium.make single env (CPU MuJoCo), random actions, reset on episode end."""
+    import gymnasium
+
+    import otr_gym  # noqa: F401  (registers the environment)
+
+    env = gymnasium.make("OTR-G1-Track-v0", reference=reference)
+    env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    actions = (0.5 * rng.standard_normal((16, 29))).astype(np.float32)
+    episodes = 0
+    start = time.perf_counter()
+    for i in range(steps):
+        _, _, terminated, truncated, _ = env.step(actions[i % 16])
+        if terminated or truncated:
+            env.reset()
+            episodes += 1
+    elapsed = time.perf_counter() - start
+    env.close()
+    return {"steps": steps, "env_steps_per_s": steps / elapsed, "ms_per_step": 1e3 * elapsed / steps,
+            "episodes": episodes}
+
+
+def _table(rows: list[dict]) -> str:
+    head = ("num_envs", "env steps/s", "backend steps/s", "raw steps/s", "env/raw", "raw bare steps/s",
+            "env ms/step", "mem GiB", "contacts/world")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        if "error" in r:
+            lines.append(f"| {r['num_envs']} | error: {r['error']} |")
+            continue
+        mem = f"{r['device_mem_gib']:.2f}" if "device_mem_gib" in r else "-"
+        lines.append(f"| {r['num_envs']} | {r['env_steps_per_s']:,.0f} | {r['backend_steps_per_s']:,.0f} | "
+                     f"{r['raw_steps_per_s']:,.0f} | {r['env_over_raw']:.0%} | {r['raw_bare_steps_per_s']:,.0f} | "
+                     f"{r['env_ms_per_step']:.2f} | {mem} | "
+                     f"{r['contacts_per_world']:.1f} |")
+    return "\n".join(lines)
+
+
+def _meta(device: str) -> dict:
+    import mujoco
+    import mujoco_warp
+    import warp as wp
+
+    if device.startswith("cuda"):
+        name = torch.cuda.get_device_name(torch.device(device))
+    else:
+        name = platform.processor() or "cpu"
+    return {"date": datetime.now(UTC).isoformat(timespec="seconds"), "device": device, "device_name": name,
+            "torch": torch.__version__, "warp": wp.__version__, "mujoco": mujoco.__version__,
+            "mujoco_warp": mujoco_warp.__version__, "python": platform.python_version()}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda", help="warp device for the vector env: cuda, cuda:K or cpu")
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[1024, 2048, 4096, 8192, 16384])
+    parser.add_argument("--steps", type=int, default=200, help="timed env steps per num_envs")
+    parser.add_argument("--warmup", type=int, default=20, help="untimed env steps after the first one")
+    parser.add_argument("--cpu-steps", type=int, default=1000, help="steps of the single CPU env (0: skip)")
+    parser.add_argument("--reference", default=None,
+                        help="reference .npz or folder (default: a generated 11 s walk, agents.procedural)")
+    parser.add_argument("--final-obs", action="store_true",
+                        help="also compute info['final_obs'] (off, as the rsl-rl adapter runs it)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", type=Path, default=Path("env_throughput.json"),
+                        help="JSON path; the markdown table is written beside it (.md)")
+    args = parser.parse_args(argv)
+
+    import warp as wp
+
+    from agents.procedural import WalkSpec, walking_reference
+
+    wp.config.quiet = True
+    reference = args.reference or walking_reference(WalkSpec(steps=20))
+    results = {"meta": _meta(args.device), "args": {k: str(v) for k, v in vars(args).items()}, "vector": []}
+    print(f"# OTR-G1-Track-v0 throughput on {results['meta']['device_name']} ({args.device})", flush=True)
+    for n in args.num_envs:
+        print(f"num_envs={n} ...", flush=True)
+        try:
+            row = bench_vector(reference, n, args.device, args.steps, args.warmup, args.final_obs, args.seed)
+        except Exception as exc:  # keep going: report OOM or a failing size in the table
+            traceback.print_exc()
+            row = {"num_envs": n, "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:200]}
+        gc.collect()  # free this size's env (and its device memory) before the next one
+        if args.device.startswith("cuda"):
+            torch.cuda.empty_cache()
+        print("   ", {k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+        results["vector"].append(row)
+    if args.cpu_steps > 0:
+        results["cpu_single_env"] = bench_cpu_single(reference, args.cpu_steps, args.seed)
+
+    table = _table(results["vector"])
+    cpu = results.get("cpu_single_env")
+    cpu_line = (f"\nSingle env, CPU MuJoCo (gymnasium.make): {cpu['env_steps_per_s']:,.0f} env-steps/s "
+                f"({cpu['ms_per_step']:.2f} ms/step, {cpu['episodes']} resets)") if cpu else ""
+    meta = results["meta"]
+    checks = "".join(f"\nnum_envs={r['num_envs']}: host sync in step: {r['host_sync_in_step']}, "
+                     f"stale torch reads: {r['stale_reads']}" for r in results["vector"] if "stale_reads" in r)
+    markdown = (f"# OTR-G1-Track-v0 throughput\n\n{meta['device_name']} ({meta['device']}), {meta['date']}; "
+                f"torch {meta['torch']}, warp {meta['warp']}, mujoco {meta['mujoco']}, "
+                f"mujoco_warp {meta['mujoco_warp']}\n\n"
+                f"env-steps/s (1 env-step = 4 physics steps, 50 Hz policy); {args.steps} timed steps per size.\n\n"
+                f"{table}\n{cpu_line}\n{checks}\n")
+    print("\n" + markdown, flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=2))
+    args.out.with_suffix(".md").write_text(markdown)
+    return results
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,146 @@
+"""The physics interface the tracking MDP is written against.
+
+A backend owns ``num_worlds`` copies of one MuJoCo model and exposes their state as batched
+torch tensors (leading axis = world). The MDP reads these tensors and writes only through
+``reset``, ``write_qvel`` and ``step``, so it never knows which simulator runs underneath.
+
+Frames and units: positions in m (world), quaternions wxyz (world), linear velocities in m/s
+(world) of the body *origin*, angular velocities in rad/s (world). Body arrays follow the
+MuJoCo model body order, world body included at index 0 (use ``body_ids``). ``qvel`` is
+MuJoCo's: the free-joint angular velocity is in the pelvis (body) frame.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+import mujoco
+import torch
+
+
+class PhysicsBackend(ABC):
+    """Batched MuJoCo-model physics with torch views of the state.
+
+    Subclasses implement the raw views and the actions below; ``model`` is the host
+    ``MjModel`` (names, sizes, sensor addresses), shared by all worlds.
+    """
+
+    def __init__(self, model: mujoco.MjModel, num_worlds: int, device: torch.device, decimation: int,
+                 contact_body_names: Sequence[str]):
+        if num_worlds < 1:
+            raise ValueError(f"num_worlds must be >= 1, got {num_worlds}")
+        if decimation < 1:
+            raise ValueError(f"decimation must be >= 1, got {decimation}")
+        self.model = model
+        self.num_worlds = int(num_worlds)
+        self.device = torch.device(device)
+        self.decimation = int(decimation)
+        self.contact_body_names = tuple(contact_body_names)
+        self._root_ids = torch.as_tensor(model.body_rootid, dtype=torch.long, device=self.device)
+
+    # ------------------------------------------------------------ raw views (N, ...)
+    @property
+    @abstractmethod
+    def qpos(self) -> torch.Tensor:
+        """(N, nq) generalized positions: root xyz (m), root quat wxyz, joints (rad)."""
+
+    @property
+    @abstractmethod
+    def qvel(self) -> torch.Tensor:
+        """(N, nv) root linear velocity (m/s, world), root angular velocity (rad/s, body), joints."""
+
+    @property
+    @abstractmethod
+    def body_pos_w(self) -> torch.Tensor:
+        """(N, nbody, 3) body origin positions (m, world)."""
+
+    @property
+    @abstractmethod
+    def body_quat_w(self) -> torch.Tensor:
+        """(N, nbody, 4) body orientations (wxyz, world)."""
+
+    @property
+    @abstractmethod
+    def _cvel(self) -> torch.Tensor:
+        """(N, nbody, 6) MuJoCo com-based velocity [angular, linear] at the subtree com of the root."""
+
+    @property
+    @abstractmethod
+    def _subtree_com(self) -> torch.Tensor:
+        """(N, nbody, 3) subtree centres of mass (m, world)."""
+
+    @property
+    @abstractmethod
+    def contact_force_n(self) -> torch.Tensor:
+        """(N, C) per ``contact_body_names``: the largest net contact force norm (N) seen over
+        the substeps of the last ``step`` (zero after ``reset``)."""
+
+    # ------------------------------------------------------------ actions
+    @abstractmethod
+    def step(self, ctrl: torch.Tensor) -> None:
+        """Hold actuator controls ``ctrl`` (N, nu) (position targets, rad) for ``decimation``
+        physics steps, then recompute kinematics and velocities for the new state."""
+
+    @abstractmethod
+    def reset(self, env_ids: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
+        """Set the state of the worlds in ``env_ids`` and recompute their kinematics.
+
+        ``env_ids`` is either a bool mask (N,) with full (N, nq)/(N, nv) state rows (rows
+        outside the mask are ignored; this form needs no host synchronisation), or a long
+        index tensor (K,) with (K, nq)/(K, nv) rows. Solver warm-starts and the contact-force
+        maxima of those worlds are cleared.
+        """
+
+    @abstractmethod
+    def write_qvel(self, qvel: torch.Tensor) -> None:
+        """Overwrite the velocities (N, nv) of all worlds (used for pushes before a step)."""
+
+    @abstractmethod
+    def set_geom_friction(self, geom_ids: Sequence[int], friction: torch.Tensor) -> None:
+        """Set the sliding friction coefficient of ``geom_ids`` per world, ``friction`` (N, G)."""
+
+    @abstractmethod
+    def set_body_com_offset(self, body_id: int, offset: torch.Tensor) -> None:
+        """Move the centre of mass of ``body_id`` by ``offset`` (N, 3) (m, body frame) from
+        its MJCF value."""
+
+    # ------------------------------------------------------------ derived views
+    @property
+    def body_ang_vel_w(self) -> torch.Tensor:
+        """(N, nbody, 3) body angular velocities (rad/s, world)."""
+        return self._cvel[..., :3]
+
+    @property
+    def body_lin_vel_w(self) -> torch.Tensor:
+        """(N, nbody, 3) linear velocities of the body origins (m/s, world).
+
+        ``cvel`` holds the velocity of the body-fixed point at the subtree com of the body's
+        root; moving that point to the body origin p adds ω × (p − c).
+        """
+        cvel = self._cvel
+        offset = self.body_pos_w - self._subtree_com[:, self._root_ids]
+        return cvel[..., 3:] + torch.cross(cvel[..., :3], offset, dim=-1)
+
+    def body_ids(self, names: Sequence[str]) -> list[int]:
+        """Model body ids of ``names`` (world = 0); unknown names raise with the list of them."""
+        ids = [mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, n) for n in names]
+        unknown = [n for n, i in zip(names, ids, strict=True) if i < 0]
+        if unknown:
+            raise KeyError(f"bodies {unknown} are not in the simulation model")
+        return ids
+
+    def _env_mask(self, env_ids: torch.Tensor) -> torch.Tensor:
+        if env_ids.dtype == torch.bool:
+            if env_ids.shape != (self.num_worlds,):
+                raise ValueError(f"reset mask must have shape ({self.num_worlds},), got {tuple(env_ids.shape)}")
+            return env_ids.to(self.device)
+        mask = torch.zeros(self.num_worlds, dtype=torch.bool, device=self.device)
+        return mask.index_fill_(0, env_ids.to(self.device, torch.long), True)
+
+    def _full_rows(self, env_ids: torch.Tensor, rows: torch.Tensor, current: torch.Tensor) -> torch.Tensor:
+        """``rows`` in the (N, ·) layout: as given for a mask, scattered into ``current`` for ids."""
+        rows = rows.to(self.device, current.dtype)
+        if env_ids.dtype == torch.bool:
+            return rows
+        return current.clone().index_copy_(0, env_ids.to(self.device, torch.long), rows)

@@ -1,0 +1,124 @@
+"""CPU MuJoCo backend: one ``MjData`` (and one ``MjModel`` copy, for per-world randomisation)
+per world, stepped in turn. Meant for one or a few worlds: rendering, evaluation, tests.
+
+MuJoCo computes in float64; after every ``step``/``reset`` the state is copied once into
+float32 torch tensors (CPU), the dtype the MDP uses on every backend.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+
+import mujoco
+import numpy as np
+import torch
+
+from envs.backends.base import PhysicsBackend
+from envs.backends.model import contact_sensor_adr
+
+
+class MuJoCoBackend(PhysicsBackend):
+    """``num_worlds`` independent MuJoCo simulations of ``model`` (CPU)."""
+
+    def __init__(self, model: mujoco.MjModel, num_worlds: int = 1, decimation: int = 4,
+                 contact_bodies: Sequence[str] = ()):
+        super().__init__(model, num_worlds, torch.device("cpu"), decimation, contact_bodies)
+        self._models = [copy.deepcopy(model) for _ in range(num_worlds)]
+        self._datas = [mujoco.MjData(m) for m in self._models]
+        for m, d in zip(self._models, self._datas, strict=True):
+            if m.nkey > 0:
+                mujoco.mj_resetDataKeyframe(m, d, 0)
+            mujoco.mj_forward(m, d)
+        adr = contact_sensor_adr(model, self.contact_body_names)
+        self._force_cols = (adr[:, None] + np.arange(3)).reshape(-1)
+        self._body_ipos0 = model.body_ipos.copy()
+        self._contact = torch.zeros(num_worlds, len(self.contact_body_names))
+        self._pull()
+
+    # ------------------------------------------------------------ views
+    @property
+    def qpos(self) -> torch.Tensor:
+        return self._qpos
+
+    @property
+    def qvel(self) -> torch.Tensor:
+        return self._qvel
+
+    @property
+    def body_pos_w(self) -> torch.Tensor:
+        return self._xpos
+
+    @property
+    def body_quat_w(self) -> torch.Tensor:
+        return self._xquat
+
+    @property
+    def _cvel(self) -> torch.Tensor:
+        return self._cvel_t
+
+    @property
+    def _subtree_com(self) -> torch.Tensor:
+        return self._subtree_com_t
+
+    @property
+    def contact_force_n(self) -> torch.Tensor:
+        return self._contact
+
+    # ------------------------------------------------------------ actions
+    def step(self, ctrl: torch.Tensor) -> None:
+        ctrl = ctrl.detach().to("cpu", torch.float64).numpy()
+        forces = np.zeros((self.num_worlds, len(self.contact_body_names)))
+        for w, (m, d) in enumerate(zip(self._models, self._datas, strict=True)):
+            d.ctrl[:] = ctrl[w]
+            for _ in range(self.decimation):
+                mujoco.mj_step(m, d)
+                f = np.linalg.norm(d.sensordata[self._force_cols].reshape(-1, 3), axis=-1)
+                np.maximum(forces[w], f, out=forces[w])
+            self._refresh(m, d)
+        self._contact = torch.from_numpy(forces).float()
+        self._pull()
+
+    def reset(self, env_ids: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
+        mask = self._env_mask(env_ids).numpy()
+        qpos = self._full_rows(env_ids, qpos, self._qpos).double().numpy()
+        qvel = self._full_rows(env_ids, qvel, self._qvel).double().numpy()
+        for w in np.flatnonzero(mask):
+            m, d = self._models[w], self._datas[w]
+            d.qpos[:], d.qvel[:] = qpos[w], qvel[w]
+            d.qacc_warmstart[:] = 0.0
+            self._refresh(m, d)
+        self._contact[torch.from_numpy(mask)] = 0.0
+        self._pull()
+
+    def write_qvel(self, qvel: torch.Tensor) -> None:
+        qvel = qvel.detach().to("cpu", torch.float64).numpy()
+        for w, d in enumerate(self._datas):
+            d.qvel[:] = qvel[w]
+        self._qvel = torch.from_numpy(qvel).float()
+
+    def set_geom_friction(self, geom_ids: Sequence[int], friction: torch.Tensor) -> None:
+        friction = friction.detach().cpu().double().numpy()
+        for w, m in enumerate(self._models):
+            m.geom_friction[list(geom_ids), 0] = friction[w]
+
+    def set_body_com_offset(self, body_id: int, offset: torch.Tensor) -> None:
+        offset = offset.detach().cpu().double().numpy()
+        for w, m in enumerate(self._models):
+            m.body_ipos[body_id] = self._body_ipos0[body_id] + offset[w]
+
+    # ------------------------------------------------------------ internals
+    @staticmethod
+    def _refresh(m: mujoco.MjModel, d: mujoco.MjData) -> None:
+        """Kinematics and com velocities of the current qpos/qvel (mj_step leaves them one substep behind)."""
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        mujoco.mj_comVel(m, d)
+
+    def _pull(self) -> None:
+        def stack(name: str) -> torch.Tensor:
+            return torch.from_numpy(np.stack([getattr(d, name) for d in self._datas])).float()
+
+        self._qpos, self._qvel = stack("qpos"), stack("qvel")
+        self._xpos, self._xquat = stack("xpos"), stack("xquat")
+        self._cvel_t, self._subtree_com_t = stack("cvel"), stack("subtree_com")

@@ -1,0 +1,237 @@
+"""Typed configuration of the tracking environment (OTR-G1-Track-v0).
+
+Defaults are the numbers of docs/RL_SPEC.md (section cited per field); ``configs/env/track.yaml``
+lists the same values for users to edit and is loaded by ``load_track_config``. MDP terms are
+named by function: a reward ``fn`` is looked up in ``envs.mdp.rewards``, a termination in
+``envs.mdp.terminations``, an observation in ``envs.mdp.observations``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from otr_gym import robot
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "track.yaml"
+
+
+@dataclass
+class SimCfg:
+    decimation: int = 4  # §1 Timing: 200 Hz physics, 50 Hz policy
+    episode_length_s: float = 10.0  # §1 Timing
+    # Per-world MuJoCo-Warp buffers (§1: MJ 35/250). A flat stance alone makes 28 contacts
+    # (14 foot capsules × 2 against the plane), so nconmax leaves room for knees/hands.
+    nconmax: int = 40
+    njmax: int = 256
+    #: Bodies with a contact-force sensor: every G1 body that has collision geometry.
+    contact_bodies: tuple[str, ...] = (
+        "pelvis", "left_hip_roll_link", "left_hip_yaw_link", "left_knee_link", "left_ankle_roll_link",
+        "right_hip_roll_link", "right_hip_yaw_link", "right_knee_link", "right_ankle_roll_link", "torso_link",
+        "left_shoulder_yaw_link", "left_elbow_link", "left_wrist_pitch_link", "left_wrist_yaw_link",
+        "right_shoulder_yaw_link", "right_elbow_link", "right_wrist_pitch_link", "right_wrist_yaw_link",
+    )
+
+
+@dataclass
+class ActionCfg:
+    clip: float = 100.0  # §1 Action: HS clips raw actions to ±100 (MJ does not clip)
+
+
+@dataclass
+class ResetNoiseCfg:
+    """Uniform half-widths added to the reference state at reset (§2 Reset noise)."""
+
+    root_pos_m: tuple[float, float, float] = (0.05, 0.05, 0.01)
+    root_rpy_rad: tuple[float, float, float] = (0.1, 0.1, 0.2)
+    root_lin_vel_mps: tuple[float, float, float] = (0.5, 0.5, 0.2)
+    root_ang_vel_radps: tuple[float, float, float] = (0.52, 0.52, 0.78)
+    joint_pos_rad: float = 0.1
+    soft_limit_factor: float = 0.9  # joints are clipped to the soft limits (§4: 90 % of range)
+
+
+@dataclass
+class CommandCfg:
+    fps: float = 50.0  # §2: the clip advances one frame per 50 Hz policy step
+    anchor_body: str = robot.ANCHOR_BODY  # §2
+    tracked_bodies: tuple[str, ...] = robot.TRACKED_BODIES  # §2 (14 bodies)
+    end_effectors: tuple[str, ...] = robot.END_EFFECTORS  # §2: ankle_roll and wrist_yaw links
+    #: "adaptive" (§2 BeyondMimic failure-driven bins), "uniform" (bins without failures) or
+    #: "zero" (frame 0, clip = env index mod #clips: evaluation).
+    start: str = "adaptive"
+    #: "resample" (§2: re-sample and reset the robot, episode continues) or "truncate" (episode ends).
+    on_clip_end: str = "resample"
+    bin_duration_s: float = 1.0  # §2: n = ⌊T/50⌋ + 1 bins at 50 fps
+    adaptive_alpha: float = 0.001  # §2: f ← α·cur + (1−α)·f
+    adaptive_uniform_ratio: float = 0.1  # §2: p ∝ f + 0.1/n
+    adaptive_kernel_size: int = 1  # §2: λⁱ kernel of size 1 (no smoothing)
+    adaptive_lambda: float = 0.8  # §2
+    #: Clips shorter than this are rejected at load (a half-second clip is almost surely a bad export).
+    min_clip_frames: int = 25
+    reset_noise: ResetNoiseCfg = field(default_factory=ResetNoiseCfg)
+    reset_noise_enabled: bool = True
+
+
+@dataclass
+class ObsTermCfg:
+    fn: str
+    noise: float = 0.0  # uniform ±noise, actor terms only (§3)
+
+
+def _policy_obs() -> list[ObsTermCfg]:
+    # §3 Actor, HS = MJ "No-State-Estimation": 58 + 6 + 3 + 29 + 29 + 29 = 154
+    return [ObsTermCfg("command", 0.0), ObsTermCfg("anchor_ori_b", 0.05), ObsTermCfg("base_ang_vel_b", 0.2),
+            ObsTermCfg("joint_pos_rel", 0.01), ObsTermCfg("joint_vel", 0.5), ObsTermCfg("last_action", 0.0)]
+
+
+def _critic_obs() -> list[ObsTermCfg]:
+    # §3 Critic: 58 + 3 + 6 + 42 + 84 + 3 + 3 + 29 + 29 + 29 = 286, no noise
+    return [ObsTermCfg(n) for n in ("command", "anchor_pos_b", "anchor_ori_b", "body_pos_b", "body_ori_b",
+                                    "base_lin_vel_b", "base_ang_vel_b", "joint_pos_rel", "joint_vel", "last_action")]
+
+
+@dataclass
+class ObservationCfg:
+    policy: list[ObsTermCfg] = field(default_factory=_policy_obs)
+    critic: list[ObsTermCfg] = field(default_factory=_critic_obs)
+    clip: float = 100.0  # §3: HS clips observations at ±100
+    noise_enabled: bool = True
+
+
+@dataclass
+class RewardTermCfg:
+    fn: str
+    weight: float
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def _rewards() -> dict[str, RewardTermCfg]:
+    # §4: tracking terms exp(−e/σ²), weights; all scaled by weight·value·dt (§1 Timing)
+    return {
+        "anchor_pos": RewardTermCfg("anchor_position_error_exp", 0.5, {"sigma": 0.3}),
+        "anchor_ori": RewardTermCfg("anchor_orientation_error_exp", 0.5, {"sigma": 0.4}),
+        "body_pos": RewardTermCfg("body_position_error_exp", 1.0, {"sigma": 0.3}),
+        "body_ori": RewardTermCfg("body_orientation_error_exp", 1.0, {"sigma": 0.4}),
+        "body_lin_vel": RewardTermCfg("body_linear_velocity_error_exp", 1.0, {"sigma": 1.0}),
+        "body_ang_vel": RewardTermCfg("body_angular_velocity_error_exp", 1.0, {"sigma": 3.14}),
+        "action_rate": RewardTermCfg("action_rate_l2", -0.1),
+        "joint_limits": RewardTermCfg("joint_pos_limits", -10.0, {"soft_limit_factor": 0.9}),
+        "undesired_contacts": RewardTermCfg("undesired_contacts", -0.1, {
+            "threshold_n": 1.0, "exclude": ["ankle_roll", "wrist_yaw"]}),
+    }
+
+
+@dataclass
+class TerminationTermCfg:
+    fn: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+
+def _terminations() -> dict[str, TerminationTermCfg]:
+    # §5, MJ column
+    return {
+        "anchor_height": TerminationTermCfg("anchor_height_error", {"threshold_m": 0.25}),
+        "anchor_ori": TerminationTermCfg("anchor_gravity_error", {"threshold": 0.8}),
+        "ee_height": TerminationTermCfg("end_effector_height_error", {"threshold_m": 0.25}),
+    }
+
+
+@dataclass
+class RandomizationCfg:
+    """Domain randomisation (§6, MJ column unless noted)."""
+
+    enabled: bool = True
+    #: Sliding friction, one draw per env shared by the foot geoms and the ground (MuJoCo
+    #: combines a pair's friction by max, so the ground must take the same draw).
+    friction_range: tuple[float, float] = (0.3, 1.2)
+    friction_geoms: tuple[str, ...] = ("ground/ground",) + tuple(
+        f"{side}_foot{i}_collision" for side in ("left", "right") for i in range(1, 8))
+    com_body: str = robot.ANCHOR_BODY
+    com_offset_m: tuple[float, float, float] = (0.025, 0.05, 0.05)  # ± per axis, body frame
+    push_interval_s: tuple[float, float] = (1.0, 3.0)
+    push_lin_vel_mps: tuple[float, float, float] = (0.5, 0.5, 0.2)  # ± per axis, world
+    push_ang_vel_radps: tuple[float, float, float] = (0.52, 0.52, 0.78)  # ± per axis, world
+    #: HS default-pose bias: shifts both the PD target and the joint_pos_rel observation.
+    joint_offset_rad: float = 0.01
+
+
+@dataclass
+class TrackEnvCfg:
+    sim: SimCfg = field(default_factory=SimCfg)
+    action: ActionCfg = field(default_factory=ActionCfg)
+    command: CommandCfg = field(default_factory=CommandCfg)
+    observations: ObservationCfg = field(default_factory=ObservationCfg)
+    rewards: dict[str, RewardTermCfg] = field(default_factory=_rewards)
+    terminations: dict[str, TerminationTermCfg] = field(default_factory=_terminations)
+    randomization: RandomizationCfg = field(default_factory=RandomizationCfg)
+    #: Vector env, same-step autoreset: also return the pre-reset observation of finished envs
+    #: in info["final_obs"] (Gymnasium convention; costs one more observation pass per step).
+    final_obs: bool = True
+
+    def for_evaluation(self) -> TrackEnvCfg:
+        """A copy for evaluation: start every clip at frame 0, end the episode with the clip,
+        no domain randomisation, no observation or reset noise."""
+        return replace(
+            self,
+            command=replace(self.command, start="zero", on_clip_end="truncate", reset_noise_enabled=False),
+            observations=replace(self.observations, noise_enabled=False),
+            randomization=replace(self.randomization, enabled=False),
+        )
+
+
+def load_track_config(path: str | Path | None = None, overrides: dict | None = None) -> TrackEnvCfg:
+    """Read a YAML file (default ``configs/env/track.yaml``; dataclass defaults if that file is
+    absent) and apply ``overrides`` (nested dict, same layout) on top."""
+    data: dict = {}
+    if path is not None or DEFAULT_CONFIG.is_file():
+        path = Path(path) if path is not None else DEFAULT_CONFIG
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: environment config not found")
+        with open(path) as f:
+            data = yaml.safe_load(f) or {}
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    if overrides:
+        data = _merge(data, overrides)
+    return _build(TrackEnvCfg, data, "track")
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for key, value in extra.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def _build(cls, data: dict, where: str):
+    """Instantiate dataclass ``cls`` from a plain mapping, converting nested types; unknown keys raise."""
+    if not isinstance(data, dict):
+        raise ValueError(f"config '{where}' must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"config '{where}': unknown keys {unknown} (expected some of {sorted(names)})")
+    return cls(**{k: _convert(hints[k], v, f"{where}.{k}") for k, v in data.items()})
+
+
+def _convert(tp, value, where: str):
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return _build(tp, value, where)
+    if origin is tuple:
+        return tuple(value)
+    if origin is list and args and dataclasses.is_dataclass(args[0]):
+        return [_build(args[0], v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict and len(args) == 2 and dataclasses.is_dataclass(args[1]):
+        return {k: _build(args[1], v, f"{where}.{k}") for k, v in value.items()}
+    if tp is float:
+        return float(value)
+    if tp is int and not isinstance(value, bool):
+        return int(value)
+    return value

@@ -1,0 +1,65 @@
+"""Domain randomisation (RL_SPEC §6): friction, torso centre of mass and default-pose bias
+drawn once per env at start-up; velocity pushes at random 1–3 s intervals.
+
+All draws use the environment's torch generator; pushes are masked updates of every env
+(no host synchronisation).
+"""
+
+from __future__ import annotations
+
+import mujoco
+import torch
+
+from envs.backends.base import PhysicsBackend
+from envs.config import RandomizationCfg
+from otr_gym import robot
+from otr_gym.rotations import quat_apply_inverse
+
+
+class DomainRandomizer:
+    def __init__(self, cfg: RandomizationCfg, backend: PhysicsBackend, step_dt: float, generator: torch.Generator):
+        self.cfg, self.backend, self.step_dt, self.gen = cfg, backend, step_dt, generator
+        self.num_envs, self.device = backend.num_worlds, backend.device
+        self._lin = torch.as_tensor(cfg.push_lin_vel_mps, dtype=torch.float32, device=self.device)
+        self._ang = torch.as_tensor(cfg.push_ang_vel_radps, dtype=torch.float32, device=self.device)
+        self.time_to_push_s = self._push_interval()
+
+    def apply_startup(self) -> torch.Tensor:
+        """Randomise friction and the COM in the backend; return the default-pose bias (N, 29) (rad)."""
+        cfg, m = self.cfg, self.backend.model
+        geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in cfg.friction_geoms]
+        missing = [g for g, i in zip(cfg.friction_geoms, geoms, strict=True) if i < 0]
+        if missing:
+            raise KeyError(f"randomization.friction_geoms {missing} are not geoms of the simulation model")
+        lo, hi = cfg.friction_range
+        draw = lo + (hi - lo) * self._rand(self.num_envs, 1)
+        self.backend.set_geom_friction(geoms, draw.expand(-1, len(geoms)))
+        com = torch.as_tensor(cfg.com_offset_m, dtype=torch.float32, device=self.device)
+        body = self.backend.body_ids([cfg.com_body])[0]
+        self.backend.set_body_com_offset(body, (2 * self._rand(self.num_envs, 3) - 1) * com)
+        return (2 * self._rand(self.num_envs, robot.NUM_JOINTS) - 1) * cfg.joint_offset_rad
+
+    def reset(self, mask: torch.Tensor) -> None:
+        """Restart the push timer of the envs in ``mask``."""
+        self.time_to_push_s = torch.where(mask, self._push_interval(), self.time_to_push_s)
+
+    def push(self) -> None:
+        """Count down the push timers; envs whose timer ran out get a random root velocity kick
+        (linear in world, angular in world, converted to the pelvis frame of qvel)."""
+        self.time_to_push_s = self.time_to_push_s - self.step_dt
+        due = (self.time_to_push_s <= 0.0)[:, None]
+        qvel = self.backend.qvel
+        lin = (2 * self._rand(self.num_envs, 3) - 1) * self._lin
+        ang_w = (2 * self._rand(self.num_envs, 3) - 1) * self._ang
+        kick = torch.cat([lin, quat_apply_inverse(self.backend.qpos[:, 3:7], ang_w)], dim=-1)
+        new = qvel.clone()
+        new[:, :6] += kick * due
+        self.backend.write_qvel(new)
+        self.time_to_push_s = torch.where(due[:, 0], self._push_interval(), self.time_to_push_s)
+
+    def _push_interval(self) -> torch.Tensor:
+        lo, hi = self.cfg.push_interval_s
+        return lo + (hi - lo) * self._rand(self.num_envs)
+
+    def _rand(self, *shape: int) -> torch.Tensor:
+        return torch.rand(*shape, device=self.device, generator=self.gen)

@@ -1,0 +1,85 @@
+"""Reward terms (RL_SPEC §4): plain functions of a ``TrackingState`` returning (N,).
+
+The environment sums weight · value · dt over the terms listed in the config. Tracking terms
+are exp(−e/σ²) kernels; body terms average e over the K tracked bodies, compare orientations
+and positions with the anchor-aligned targets and velocities in the world frame.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import cache
+
+import torch
+
+from envs.mdp.state import TrackingState
+from otr_gym import robot
+from otr_gym.rotations import quat_error_angle
+
+
+def anchor_position_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−‖p_ref − p‖²/σ²) for the anchor, unaligned world reference (σ in m)."""
+    err = torch.sum(torch.square(s.ref_anchor_pos_w - s.anchor_pos_w), dim=-1)
+    return torch.exp(-err / sigma**2)
+
+
+def anchor_orientation_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−angle²/σ²) between the anchor and the world reference anchor (σ in rad)."""
+    err = torch.square(quat_error_angle(s.ref_anchor_quat_w, s.anchor_quat_w))
+    return torch.exp(-err / sigma**2)
+
+
+def body_position_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_k ‖p̂_k − p_k‖²/σ²) with the aligned targets p̂."""
+    err = torch.sum(torch.square(s.ref_body_pos_aligned_w - s.body_pos_w), dim=-1)
+    return torch.exp(-err.mean(-1) / sigma**2)
+
+
+def body_orientation_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_k angle(q̂_k, q_k)²/σ²) with the aligned targets q̂."""
+    err = torch.square(quat_error_angle(s.ref_body_quat_aligned_w, s.body_quat_w))
+    return torch.exp(-err.mean(-1) / sigma**2)
+
+
+def body_linear_velocity_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_k ‖v_ref − v‖²/σ²), world frame (σ in m/s)."""
+    err = torch.sum(torch.square(s.ref_body_lin_vel_w - s.body_lin_vel_w), dim=-1)
+    return torch.exp(-err.mean(-1) / sigma**2)
+
+
+def body_angular_velocity_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_k ‖ω_ref − ω‖²/σ²), world frame (σ in rad/s)."""
+    err = torch.sum(torch.square(s.ref_body_ang_vel_w - s.body_ang_vel_w), dim=-1)
+    return torch.exp(-err.mean(-1) / sigma**2)
+
+
+def action_rate_l2(s: TrackingState) -> torch.Tensor:
+    """Σ_j (a_t − a_{t−1})²."""
+    return torch.sum(torch.square(s.action - s.last_action), dim=-1)
+
+
+def joint_pos_limits(s: TrackingState, soft_limit_factor: float) -> torch.Tensor:
+    """Σ_j radians beyond the soft limits (``soft_limit_factor`` of each range about its middle)."""
+    lower, upper = _soft_limits(soft_limit_factor, s.joint_pos.device)
+    below = (lower - s.joint_pos).clamp_min(0.0)
+    above = (s.joint_pos - upper).clamp_min(0.0)
+    return torch.sum(below + above, dim=-1)
+
+
+def undesired_contacts(s: TrackingState, threshold_n: float, exclude: Sequence[str]) -> torch.Tensor:
+    """Number of contact-sensor bodies pushed harder than ``threshold_n`` (max over the step's
+    substeps), skipping bodies whose name contains any of ``exclude`` (feet, hands)."""
+    keep = _kept_columns(s.contact_body_names, tuple(exclude), s.contact_force_n.device)
+    return torch.sum((s.contact_force_n > threshold_n) & keep, dim=-1).float()
+
+
+@cache
+def _soft_limits(factor: float, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    lower, upper = robot.soft_joint_limits(factor)
+    return (torch.as_tensor(lower, dtype=torch.float32, device=device),
+            torch.as_tensor(upper, dtype=torch.float32, device=device))
+
+
+@cache
+def _kept_columns(names: tuple[str, ...], exclude: tuple[str, ...], device: torch.device) -> torch.Tensor:
+    return torch.tensor([not any(e in n for e in exclude) for n in names], dtype=torch.bool, device=device)

@@ -1,0 +1,28 @@
+"""Termination terms (RL_SPEC §5, MJ thresholds): plain functions of a ``TrackingState``
+returning (N,) bool. Any true term ends the episode as a failure (not a time-out)."""
+
+from __future__ import annotations
+
+import torch
+
+from envs.mdp.state import TrackingState
+from otr_gym.rotations import projected_gravity
+
+
+def anchor_height_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
+    """|z_refAnchor − z_robotAnchor| > threshold (m)."""
+    return torch.abs(s.ref_anchor_pos_w[:, 2] - s.anchor_pos_w[:, 2]) > threshold_m
+
+
+def anchor_gravity_error(s: TrackingState, threshold: float) -> torch.Tensor:
+    """|Δ projected-gravity z| of the anchor > threshold (a tilt test that ignores yaw)."""
+    g_ref = projected_gravity(s.ref_anchor_quat_w)[:, 2]
+    g = projected_gravity(s.anchor_quat_w)[:, 2]
+    return torch.abs(g_ref - g) > threshold
+
+
+def end_effector_height_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
+    """Any end-effector (ankle_roll, wrist_yaw) height off its aligned target by > threshold (m)."""
+    ee = s.end_effectors
+    err = torch.abs(s.ref_body_pos_aligned_w[:, ee, 2] - s.body_pos_w[:, ee, 2])
+    return torch.any(err > threshold_m, dim=-1)
