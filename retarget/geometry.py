@@ -1,0 +1,566 @@
+"""Proximity channels: probe clouds, SDF/witness voxel grids, the ground, surface geodesics.
+
+A *channel* is an entity a probe can be near: an object, a robot link, the ground. Every
+query takes probe positions already expressed in the **channel frame** (the object's mesh
+frame; the world for the ground) and returns the proximity triple of the paper (Sec. III-A,
+eq. m-triple) with the derivatives the SQP needs:
+
+* Φ (signed distance, m, negative inside) and W (witness = closest surface point) are
+  sampled once on a 1 cm voxel grid covering the band d̄ = 15 cm around the surface, then
+  interpolated trilinearly; ∂Φ/∂x and ∂W/∂x are the exact derivatives of that interpolant.
+  Node values come from :func:`retarget.meshes.signed_distance` (exact distance, sign from the
+  fast winding number), so scanned meshes with holes keep correct signs. Where a cell
+  straddles the medial axis (inside an object near an edge, outside in a fold) a blend of
+  witnesses lies off the surface; those witnesses are re-projected (see ``SDFChannel.query``).
+* ρ(w; ŵ), the geodesic distance between two surface points, is precomputed between all pairs
+  of a surface sample cloud with the heat method on point clouds (potpourri3d) and stored as
+  the ratio geodesic/chord; for arbitrary witnesses ρ = |w − ŵ| · γ(w, ŵ), γ interpolated from
+  the nearest samples. The ratio is ≥ 1 and slowly varying, so ρ → 0 exactly as w → ŵ and
+  its gradient keeps the chord direction where the surface is flat.
+* The ground is analytic: d = z, w = (x, y, 0).
+
+Grids and geodesic tables are immutable and cached on disk keyed by the mesh content and
+the configuration; a cache file that fails validation is rebuilt, never trusted.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import igl
+import numpy as np
+import potpourri3d as pp3d
+from scipy.spatial import cKDTree
+from scipy.spatial.distance import cdist
+
+from retarget.meshes import InvalidMeshError, TriMesh, as_trimesh, check_encloses_volume, load_mesh, signed_distance
+
+#: Bumped whenever the content or layout of cached grids changes.
+_GRID_FORMAT = 2
+#: Offset (m) along the SDF gradient mixed into witness→probe before normalising, so that n is the
+#: outward normal (times sign d) at contact, where x − w is a few µm of interpolation noise.
+_NORMAL_BLEND_M = 1e-3
+#: Probes closer than this to the surface count as on it: n is the outward normal there.
+_ON_SURFACE_M = 1e-6
+#: ‖∂W/∂x‖²_F above which a cell's blended witness is distrusted: a closest-point map gives 2 on a
+#: face, less at convex edges and corners, more only in concave regions (where blends drift).
+_MEDIAL_JACOBIAN_SQ = 2.2
+#: Trilinear corner order: bit 2 = x, bit 1 = y, bit 0 = z (so z-pairs are adjacent).
+_CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dtype=np.intp)
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    """Proximity geometry settings (paper Sec. III-A; METHOD.md "Proximity triple")."""
+
+    grid_resolution_m: float = 0.01  # 1 cm isotropic voxels (Sec. III-A)
+    band_m: float = 0.15  # d̄: grid covers 15 cm beyond the surface; a pair is active when d < d̄
+    human_density_per_m2: float = 2000.0  # probe densities (Sec. III-A)
+    robot_density_per_m2: float = 2000.0
+    object_density_per_m2: float = 1000.0
+    # Our choices for the geodesic table (the paper only says "precomputed on the channel cloud"):
+    geodesic_min_samples: int = 200  # small links still get a usable all-pairs table
+    geodesic_max_samples: int = 2000  # K heat solves and a K×K table: ~3 s and 16 MB at K = 2000
+    geodesic_neighbours: int = 4  # samples blended per witness
+
+
+# --------------------------------------------------------------------------- probe sampling
+
+
+@dataclass(frozen=True)
+class SurfaceSamples:
+    """Points on a surface (mesh frame, m), the unit normal of their face, and that face's index.
+
+    Normals follow the face winding (outward for a consistently oriented closed mesh).
+    """
+
+    points: np.ndarray  # (N, 3)
+    normals: np.ndarray  # (N, 3)
+    face: np.ndarray  # (N,) int
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def sample_surface(mesh: TriMesh, density_per_m2: float, seed: int = 0) -> SurfaceSamples:
+    """Area-uniform random samples, round(area · density) of them (at least 1); same seed, same cloud."""
+    if not density_per_m2 > 0:
+        raise ValueError(f"{mesh.name}: density must be > 0 points/m², got {density_per_m2}")
+    return _sample_count(mesh, max(1, round(mesh.area_m2 * density_per_m2)), seed)
+
+
+def _sample_count(mesh: TriMesh, count: int, seed: int) -> SurfaceSamples:
+    tri = mesh.vertices[mesh.faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(cross, axis=1)
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(area2), size=count, p=area2 / area2.sum())
+    # Uniform barycentrics by the square-root fold (Osada et al. 2002).
+    r1 = np.sqrt(rng.random(count))
+    r2 = rng.random(count)
+    t = tri[face]
+    points = (1 - r1)[:, None] * t[:, 0] + (r1 * (1 - r2))[:, None] * t[:, 1] + (r1 * r2)[:, None] * t[:, 2]
+    normals = cross[face] / area2[face, None]
+    return SurfaceSamples(points, normals, face.astype(np.int64))
+
+
+# --------------------------------------------------------------------------- query result
+
+
+@dataclass(frozen=True)
+class ProximityQuery:
+    """Proximity triple of N probes w.r.t. one channel, all in the channel frame.
+
+    d (N,) signed distance (m, negative inside, clamped to band_m out of band);
+    w (N, 3) witness (closest surface point); n (N, 3) unit vector witness→probe, equal to
+    sign(d)·outward normal as d → 0 and the outward normal within 1 µm of the surface; grad_d (N, 3) ∂d/∂x, the exact gradient of the trilinear
+    interpolant; dw_dx (N, 3, 3) ∂w/∂x, the exact Jacobian of the interpolated witness
+    (I − n nᵀ on faces, smaller at convex edges and corners), or I − n nᵀ of the face where a
+    witness was re-projected; in_band (N,) bool: inside the grid and d < band_m. Out of band,
+    d = band_m and both gradients are zero.
+    """
+
+    d: np.ndarray
+    w: np.ndarray
+    n: np.ndarray
+    grad_d: np.ndarray
+    dw_dx: np.ndarray
+    in_band: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.d)
+
+
+class Channel(Protocol):
+    """What the residuals need from a channel; every array in the channel frame."""
+
+    name: str
+    is_ground: bool
+
+    def query(self, x_c: np.ndarray, exact_witness: bool = False) -> ProximityQuery: ...
+
+    def geodesic(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+def _check_points(name: str, x: np.ndarray, what: str = "probes") -> np.ndarray:
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[1] != 3:
+        raise ValueError(f"{name}: {what} must be (N, 3), got {x.shape}")
+    return x
+
+
+# --------------------------------------------------------------------------- voxel grid
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """Samples of (Φ, Wx, Wy, Wz) at the nodes of a regular grid, channel frame.
+
+    Node (i, j, k) sits at origin + resolution · (i, j, k); ``values`` is (nx·ny·nz, 4) in
+    C order so a node's row is i·ny·nz + j·nz + k.
+    """
+
+    origin: np.ndarray  # (3,) m
+    resolution: float  # m
+    shape: tuple[int, int, int]
+    values: np.ndarray  # (nx*ny*nz, 4)
+
+    def __post_init__(self) -> None:
+        _, ny, nz = self.shape
+        strides = np.array([ny * nz, nz, 1], dtype=np.intp)
+        object.__setattr__(self, "_corner_offsets", _CORNERS @ strides)
+        object.__setattr__(self, "_strides", strides)
+        object.__setattr__(self, "_upper", np.array(self.shape, np.float64) - 1.0)
+
+    @property
+    def node_positions(self) -> np.ndarray:
+        """(nx·ny·nz, 3) node positions in row order (m)."""
+        axes = [self.origin[a] + self.resolution * np.arange(self.shape[a]) for a in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def nearest_node(self, x: np.ndarray) -> np.ndarray:
+        """(N,) row of the node nearest to each point (clipped to the grid)."""
+        i = np.clip(np.rint((x - self.origin) * (1.0 / self.resolution)), 0.0, self._upper)
+        return i.astype(np.intp) @ self._strides
+
+    def _cells(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Lower-corner node index (N, 3) of each point's cell, position in the cell (N, 3) in
+        [0, 1], inside-grid mask (N,). Outside points use the cell of their projection."""
+        u = (x - self.origin) * (1.0 / self.resolution)
+        inside = np.all((u >= 0.0) & (u <= self._upper), axis=1)
+        i0 = np.clip(np.floor(u), 0.0, self._upper - 1.0)
+        return i0.astype(np.intp), np.clip(u - i0, 0.0, 1.0), inside
+
+    def corners(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (8, N, 3) and values (8, N, 4) of the corners of each point's cell."""
+        i0, _, _ = self._cells(x)
+        idx = i0[None] + _CORNERS[:, None]
+        return self.origin + self.resolution * idx, np.take(self.values, idx @ self._strides, axis=0)
+
+    def interpolate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Trilinear values (N, 4), their Jacobian (N, 4, 3) and an inside-grid mask (N,).
+
+        Points outside the grid are evaluated at their projection onto the grid box with a
+        zero Jacobian (the caller marks them out of band).
+        """
+        i0, f, inside = self._cells(x)
+        # (8, N, 4): one contiguous block per corner (np.take is ~10x faster than fancy indexing here).
+        c = np.take(self.values, (i0 @ self._strides)[None, :] + self._corner_offsets[:, None], axis=0)
+        # Successive lerps along z, y, x; each level's difference is the partial along that axis.
+        fx, fy, fz = f[:, 0, None], f[:, 1, None], f[:, 2, None]
+        dz = c[1::2] - c[0::2]  # (4, N, 4), corners ordered (x, y) = 00, 01, 10, 11
+        cz = c[0::2] + fz * dz
+        dy = cz[1::2] - cz[0::2]  # (2, N, 4), ordered x = 0, 1
+        cyz = cz[0::2] + fy * dy
+        dyz = dz[0::2] + fy * (dz[1::2] - dz[0::2])
+        dx = cyz[1] - cyz[0]
+        val = cyz[0] + fx * dx
+        jac = np.empty((len(x), 4, 3))
+        jac[:, :, 0] = dx
+        jac[:, :, 1] = dy[0] + fx * (dy[1] - dy[0])
+        jac[:, :, 2] = dyz[0] + fx * (dyz[1] - dyz[0])
+        jac *= (1.0 / self.resolution) * inside[:, None, None]
+        return val, jac, inside
+
+
+def build_sdf_grid(mesh: TriMesh, resolution_m: float, band_m: float) -> VoxelGrid:
+    """Exact Φ and W at every node of the box bounds ± (band + 1.5 voxels) (mesh frame).
+
+    The margin of a voxel puts every point closer than ``band_m`` to the surface inside a grid
+    cell, so the band is fully covered; the extra half voxel keeps nodes off the faces of
+    primitives whose sizes are whole centimetres (a node on the surface has no normal).
+    """
+    pad = band_m + 1.5 * resolution_m
+    lo = mesh.bounds[0] - pad
+    shape = tuple(int(s) for s in np.ceil((mesh.bounds[1] + pad - lo) / resolution_m).astype(int) + 1)
+    grid = VoxelGrid(lo, float(resolution_m), shape, np.zeros((0, 4)))
+    d, closest, _ = signed_distance(mesh, grid.node_positions)
+    return VoxelGrid(lo, float(resolution_m), shape, np.column_stack([d, closest]))
+
+
+def _medial_cells(x: np.ndarray, d: np.ndarray, corner_pos: np.ndarray,
+                  corner_val: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which probes' cells straddle the medial axis, and a planar witness for them.
+
+    x (M, 3) probes at interpolated distance d (M,), their cell corners (8, M, 3) and values
+    (8, M, 4). A corner k on the probe's side of the surface sees it at W_k along the unit
+    m_k = (p_k − W_k)/|Φ_k|. Views of one face, or around a convex feature, never converge;
+    a view that converges with the cell's mean view (m_k − m̄ opposes W_k − W̄) and differs from
+    it by more than ~10° sees another face across the medial axis (inside near an edge,
+    outside in a fold), where a blend of witnesses lies off the surface. Returns that mask
+    (M,), and for the masked probes the projection of x on the nearest corner tangent plane
+    (S, 3) with its unit normal (S, 3): exact on planar faces, hence for probes inside box-like
+    objects (NaN where no corner qualifies).
+    """
+    phi, wk = corner_val[..., 0], corner_val[..., 1:]
+    # Corners on the surface have no view direction; corners across it see another medial axis.
+    valid = (np.abs(phi) > 1e-6) & ((phi < 0.0) == (d < 0.0)[None])
+    mk = (corner_pos - wk) / np.where(valid, np.abs(phi), 1.0)[..., None]
+    weight = valid / np.maximum(valid.sum(axis=0), 1)[None]
+    dm = mk - np.einsum("km,kmj->mj", weight, mk)[None]
+    dwk = wk - np.einsum("km,kmj->mj", weight, wk)[None]
+    dm_sq = np.einsum("kmj,kmj->km", dm, dm)
+    converge = np.einsum("kmj,kmj->km", dm, dwk) < -0.25 * np.sqrt(dm_sq * np.einsum("kmj,kmj->km", dwk, dwk))
+    straddle = np.any(converge & (dm_sq > 0.03) & valid, axis=0)
+    rows = np.flatnonzero(straddle)
+    m_s, w_s, v_s = mk[:, rows], wk[:, rows], valid[:, rows]
+    height = np.einsum("kmj,kmj->km", x[rows][None] - w_s, m_s)  # signed distance of x to each corner plane
+    best = np.argmin(np.where(v_s, np.abs(height), np.inf), axis=0)
+    cols = np.arange(len(rows))
+    normal = np.where(v_s[best, cols][:, None], m_s[best, cols], np.nan)
+    return straddle, x[rows] - height[best, cols][:, None] * normal, normal
+
+
+# --------------------------------------------------------------------------- geodesics
+
+
+class SurfaceGeodesics:
+    """Geodesic distance between arbitrary points of one surface (mesh frame, m).
+
+    Precomputed: heat-method distances (potpourri3d point-cloud solver) between all pairs of
+    ``points``, stored as ``ratio`` = geodesic / chord clipped to ≥ 1 (geodesics are never
+    shorter than chords; the heat method underestimates at a few sample spacings). Online:
+    ρ(w, ŵ) = |w − ŵ| · Σ_ij α_i(w) α_j(ŵ) ratio_ij with Gaussian weights α (bandwidth = mean
+    sample spacing) over k samples near each point. The k samples are those nearest to the
+    closest node of ``grid`` (a table made once), which spares a k-d tree search per call.
+    """
+
+    def __init__(self, points: np.ndarray, ratio: np.ndarray, spacing_m: float, grid: VoxelGrid,
+                 neighbour_table: np.ndarray) -> None:
+        self.points = points
+        self.ratio = ratio
+        self.spacing_m = float(spacing_m)
+        self.grid = grid
+        self.neighbour_table = neighbour_table
+
+    @staticmethod
+    def heat_ratio(points: np.ndarray) -> np.ndarray:
+        """All-pairs geodesic/chord ratio (K, K) float32 by the heat method on the point cloud."""
+        solver = pp3d.PointCloudHeatSolver(points)
+        dist = np.stack([solver.compute_distance(i) for i in range(len(points))])
+        dist = 0.5 * (dist + dist.T)  # the heat method is not exactly symmetric
+        chord = cdist(points, points)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(chord > 0, dist / chord, 1.0)
+        return np.maximum(ratio, 1.0).astype(np.float32)
+
+    @staticmethod
+    def make_neighbour_table(points: np.ndarray, grid: VoxelGrid, neighbours: int) -> np.ndarray:
+        """(nodes, k) int32: the k samples nearest to every grid node."""
+        k = int(min(neighbours, len(points)))
+        _, idx = cKDTree(points).query(grid.node_positions, k=k)
+        return idx.reshape(-1, k).astype(np.int32)
+
+    def _weights(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Neighbour indices (N, k), normalised weights (N, k) and ∂weights/∂x (N, k, 3)."""
+        # np.take and einsum: fancy indexing and .sum over tiny axes cost several times more here.
+        idx = np.take(self.neighbour_table, self.grid.nearest_node(x), axis=0)
+        diff = np.take(self.points, idx, axis=0) - x[:, None]  # s_i − x
+        sq = np.einsum("nkj,nkj->nk", diff, diff)
+        inv_h2 = 1.0 / self.spacing_m**2
+        a = np.exp(-0.5 * inv_h2 * (sq - sq.min(axis=1, keepdims=True)))
+        a /= np.einsum("nk->n", a)[:, None]
+        mean = np.einsum("nk,nkj->nj", a, diff)
+        da = (diff - mean[:, None]) * (a * inv_h2)[:, :, None]  # ∂α_i/∂x = α_i (s_i − s̄)/h²
+        return idx, a, da
+
+    def distance(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """ρ(w; ŵ) (N,) in m and ∂ρ/∂w (N, 3); w, ŵ on the surface (mesh frame)."""
+        i, a, da = self._weights(w)
+        j, b, _ = self._weights(w_hat)
+        ratio = np.take(self.ratio, i[:, :, None] * len(self.points) + j[:, None, :]).astype(np.float64)
+        row = np.einsum("nij,nj->ni", ratio, b)  # Σ_j β_j ratio_ij
+        gamma = np.einsum("ni,ni->n", a, row)
+        dgamma = np.einsum("nij,ni->nj", da, row)
+        chord = w - w_hat
+        e = np.sqrt(np.einsum("nj,nj->n", chord, chord))
+        unit = np.divide(chord, e[:, None], out=np.zeros_like(chord), where=e[:, None] > 0)
+        return e * gamma, gamma[:, None] * unit + e[:, None] * dgamma
+
+
+# --------------------------------------------------------------------------- disk cache
+
+
+def default_cache_dir() -> Path:
+    """$OTR_CACHE_DIR, else ~/.cache/otr-gym."""
+    return Path(os.environ.get("OTR_CACHE_DIR", Path.home() / ".cache" / "otr-gym"))
+
+
+def save_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write an uncompressed npz through a temporary file in the same folder + rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, **arrays)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def cached_arrays(path: Path, key: str, build: Callable[[], dict[str, np.ndarray]],
+                  check: Callable[[dict[str, np.ndarray]], None]) -> dict[str, np.ndarray]:
+    """Load ``path`` if it holds ``key`` and passes ``check``; otherwise build, save, return.
+
+    A file that cannot be read, holds another key, or fails ``check`` (which raises) is
+    rebuilt with a warning naming it.
+    """
+    if path.is_file():
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+            if str(arrays.pop("cache_key", "")) != key:
+                raise ValueError("cache key mismatch")
+            check(arrays)
+            return arrays
+        except Exception as exc:  # noqa: BLE001 - any unreadable or invalid file is rebuilt, never trusted
+            warnings.warn(f"{path}: invalid cache file ({type(exc).__name__}: {exc}); rebuilding", stacklevel=3)
+    arrays = build()
+    save_npz_atomic(path, {**arrays, "cache_key": np.array(key)})
+    return arrays
+
+
+def _hash_key(*parts: object) -> str:
+    return hashlib.sha256("|".join(str(p) for p in parts).encode()).hexdigest()
+
+
+# --------------------------------------------------------------------------- channels
+
+
+class SDFChannel:
+    """A rigid mesh as a proximity channel (object or robot link), everything in its mesh frame.
+
+    Immutable after construction: ``mesh``, ``surface`` (its probe cloud at the channel's
+    density), ``grid`` (Φ, W), ``geodesics``.
+    """
+
+    is_ground = False
+
+    def __init__(self, name: str, mesh: TriMesh, surface: SurfaceSamples, grid: VoxelGrid,
+                 geodesics: SurfaceGeodesics, band_m: float) -> None:
+        self.name = name
+        self.mesh = mesh
+        self.surface = surface
+        self.grid = grid
+        self.geodesics = geodesics
+        self.band_m = float(band_m)
+        self._aabb = None
+
+    @classmethod
+    def from_mesh(cls, mesh: TriMesh, cfg: GeometryConfig = GeometryConfig(), cache_dir: Path | None = None,
+                  density_per_m2: float | None = None, seed: int = 0, name: str | None = None) -> SDFChannel:
+        """Build (or load from the cache) the channel of ``mesh``.
+
+        ``density_per_m2`` of the surface cloud defaults to the object density (use
+        ``cfg.robot_density_per_m2`` for robot links). Raises InvalidMeshError naming the mesh
+        when it has invalid arrays or encloses no volume.
+        """
+        mesh = as_trimesh(mesh.vertices, mesh.faces, getattr(mesh, "name", "<mesh>"))
+        check_encloses_volume(mesh)
+        density = cfg.object_density_per_m2 if density_per_m2 is None else float(density_per_m2)
+        surface = sample_surface(mesh, density, seed)
+        n_geo = int(np.clip(len(surface), cfg.geodesic_min_samples, cfg.geodesic_max_samples))
+        geo_samples = surface if n_geo == len(surface) else _sample_count(mesh, n_geo, seed + 1)
+        key = _hash_key(_GRID_FORMAT, mesh.content_hash, cfg.grid_resolution_m, cfg.band_m, density, seed,
+                        n_geo)
+        path = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "sdf" / f"{key}.npz"
+
+        def build() -> dict[str, np.ndarray]:
+            grid = build_sdf_grid(mesh, cfg.grid_resolution_m, cfg.band_m)
+            return {"origin": grid.origin, "resolution": np.array(grid.resolution), "shape": np.array(grid.shape),
+                    "values": grid.values, "geodesic_ratio": SurfaceGeodesics.heat_ratio(geo_samples.points),
+                    "geodesic_neighbours": SurfaceGeodesics.make_neighbour_table(geo_samples.points, grid,
+                                                                                 cfg.geodesic_neighbours)}
+
+        def check(a: dict[str, np.ndarray]) -> None:
+            shape = tuple(int(s) for s in a["shape"])
+            if len(shape) != 3 or a["values"].shape != (int(np.prod(shape)), 4) or a["origin"].shape != (3,):
+                raise ValueError(f"grid arrays have inconsistent shapes {a['values'].shape} vs {shape}")
+            if a["geodesic_ratio"].shape != (n_geo, n_geo):
+                raise ValueError(f"geodesic table is {a['geodesic_ratio'].shape}, expected {(n_geo, n_geo)}")
+            table = a["geodesic_neighbours"]
+            if table.shape[0] != len(a["values"]) or table.min() < 0 or table.max() >= n_geo:
+                raise ValueError(f"geodesic neighbour table {table.shape} does not match the grid")
+            if not (np.isfinite(a["values"]).all() and np.isfinite(a["geodesic_ratio"]).all()):
+                raise ValueError("non-finite values")
+
+        a = cached_arrays(path, key, build, check)
+        grid = VoxelGrid(np.asarray(a["origin"], np.float64), float(a["resolution"]),
+                         tuple(int(s) for s in a["shape"]), np.ascontiguousarray(a["values"], np.float64))
+        spacing = float(np.sqrt(mesh.area_m2 / n_geo))
+        geodesics = SurfaceGeodesics(geo_samples.points, a["geodesic_ratio"], spacing, grid,
+                                     a["geodesic_neighbours"])
+        return cls(name or mesh.name, mesh, surface, grid, geodesics, cfg.band_m)
+
+    def query(self, x_c: np.ndarray, exact_witness: bool = False) -> ProximityQuery:
+        """Proximity of probes ``x_c`` (N, 3) given in the channel frame (m).
+
+        Witnesses are the trilinear blend of the grid's, except in cells that straddle the
+        medial axis (see :func:`_medial_cells`), where a blend lies off the surface:
+        penetrating probes there take the planar witness (exact on flat faces). With
+        ``exact_witness`` (once-per-frame work such as the demonstration's targets), every
+        such cell, and every cell stretched like a concave fold, gets the exact closest point
+        of the mesh instead (AABB tree, ~25 µs per probe).
+        """
+        x = _check_points(self.name, x_c)
+        val, jac, inside = self.grid.interpolate(x)
+        in_band = inside & (val[:, 0] < self.band_m)
+        d = np.where(in_band, val[:, 0], self.band_m)
+        jac *= in_band[:, None, None]
+        w = val[:, 1:]
+        dw_dx = jac[:, 1:]
+        # Only penetrating probes and blends that stretch more than a closest-point map does on
+        # a face (‖∂w/∂x‖²_F = 2; less at convex edges and corners) can straddle the medial axis.
+        # The hot path checks penetrating probes only: outside, only folds (concave regions)
+        # stretch, and their blends stay within ~2 mm of the surface for 99 % of probes near it.
+        stretched = np.einsum("nij,nij->n", dw_dx, dw_dx) > _MEDIAL_JACOBIAN_SQ
+        suspect = np.flatnonzero(in_band & (stretched | (val[:, 0] < 0.0)) if exact_witness
+                                 else in_band & (val[:, 0] < 0.0))
+        if len(suspect):
+            straddle, w_plane, n_plane = _medial_cells(x[suspect], val[suspect, 0], *self.grid.corners(x[suspect]))
+            if exact_witness:
+                fix = suspect[straddle | stretched[suspect]]
+                w[fix] = self._closest_points(x[fix])
+                normal = x[fix] - w[fix]
+                normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+            else:
+                keep = np.isfinite(n_plane[:, 0])
+                fix, normal = suspect[straddle][keep], n_plane[keep]
+                w[fix] = w_plane[keep]
+            # The tangent projection of a face (exact there; at an edge or vertex the true ∂w/∂x is smaller).
+            dw_dx[fix] = np.eye(3) - normal[:, :, None] * normal[:, None, :]
+        grad = jac[:, 0]
+        sign = np.where(d < -_ON_SURFACE_M, -1.0, 1.0)[:, None]
+        g_norm = np.linalg.norm(grad, axis=1, keepdims=True)
+        outward = sign * (x - w) + _NORMAL_BLEND_M * np.divide(grad, g_norm, out=np.zeros_like(grad),
+                                                                where=g_norm > 0)
+        o_norm = np.linalg.norm(outward, axis=1, keepdims=True)
+        n = sign * np.divide(outward, o_norm, out=np.zeros_like(outward), where=o_norm > 0)
+        return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=in_band)
+
+    def _closest_points(self, x: np.ndarray) -> np.ndarray:
+        """Exact closest surface points (M, 3); the AABB tree is built on first use (it cannot be pickled)."""
+        if len(x) == 0:
+            return np.zeros((0, 3))
+        if self._aabb is None:
+            self._aabb = igl.AABB()
+            self._aabb.init(self.mesh.vertices, self.mesh.faces)
+        return self._aabb.squared_distance(self.mesh.vertices, self.mesh.faces, np.ascontiguousarray(x))[2]
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_aabb": None}
+
+    def geodesic(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Geodesic distance ρ (N,) between witnesses w and ŵ (N, 3) on this surface, and ∂ρ/∂w (N, 3)."""
+        return self.geodesics.distance(_check_points(self.name, w, "witnesses"),
+                                       _check_points(self.name, w_hat, "witnesses"))
+
+
+class GroundChannel:
+    """The flat ground z = 0 (world frame), exact everywhere; in_band marks z < band_m."""
+
+    is_ground = True
+
+    def __init__(self, name: str = "ground", band_m: float = GeometryConfig.band_m) -> None:
+        self.name = name
+        self.band_m = float(band_m)
+
+    def query(self, x_c: np.ndarray, exact_witness: bool = False) -> ProximityQuery:
+        """Exact triple of probes ``x_c`` (N, 3) in the world frame (``exact_witness`` has no effect)."""
+        x = _check_points(self.name, x_c)
+        n_pts = len(x)
+        d = x[:, 2].copy()
+        w = x.copy()
+        w[:, 2] = 0.0
+        n = np.zeros((n_pts, 3))
+        n[:, 2] = np.where(d < 0.0, -1.0, 1.0)
+        grad = np.zeros((n_pts, 3))
+        grad[:, 2] = 1.0
+        dw_dx = np.broadcast_to(np.diag([1.0, 1.0, 0.0]), (n_pts, 3, 3)).copy()
+        return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=d < self.band_m)
+
+    def geodesic(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Planar distance between witnesses (N,) and its gradient w.r.t. w (N, 3)."""
+        diff = _check_points(self.name, w, "witnesses") - _check_points(self.name, w_hat, "witnesses")
+        diff[:, 2] = 0.0
+        rho = np.linalg.norm(diff, axis=1)
+        return rho, np.divide(diff, rho[:, None], out=np.zeros_like(diff), where=rho[:, None] > 0)
+
+
+def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache_dir: Path | None = None,
+                 **kw) -> SDFChannel:
+    """Channel of a mesh file; a missing or unreadable file raises InvalidMeshError naming it."""
+    return SDFChannel.from_mesh(load_mesh(path), cfg, cache_dir, **kw)
+
+
+__all__ = ["Channel", "GeometryConfig", "GroundChannel", "InvalidMeshError", "ProximityQuery", "SDFChannel",
+           "SurfaceGeodesics", "SurfaceSamples", "VoxelGrid", "build_sdf_grid", "cached_arrays",
+           "default_cache_dir", "load_channel", "sample_surface", "save_npz_atomic"]
