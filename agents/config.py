@@ -1,0 +1,155 @@
+"""Typed PPO training configuration (docs/RL_SPEC.md §7) and its rsl-rl-lib 5.x dictionary.
+
+``configs/agents/ppo_track.yaml`` lists the same values as the dataclass defaults below; it is
+read by ``load_train_config`` and the resolved configuration is written into every run folder,
+so a run can be resumed, evaluated and exported without the original YAML.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "agents" / "ppo_track.yaml"
+
+
+@dataclass
+class ActorCfg:
+    hidden_dims: tuple[int, ...] = (512, 256, 128)  # §7
+    activation: str = "elu"  # §7
+    obs_normalization: bool = True  # §7: empirical observation normalisation
+    init_std: float = 1.0  # §7: initial action std (scalar parameterisation)
+
+
+@dataclass
+class CriticCfg:
+    hidden_dims: tuple[int, ...] = (512, 256, 128)  # §7
+    activation: str = "elu"  # §7
+    obs_normalization: bool = True  # §7
+
+
+@dataclass
+class AlgorithmCfg:
+    """Keyword arguments of ``rsl_rl.algorithms.PPO`` (all §7)."""
+
+    num_learning_epochs: int = 5
+    num_mini_batches: int = 4
+    clip_param: float = 0.2
+    use_clipped_value_loss: bool = True
+    value_loss_coef: float = 1.0
+    entropy_coef: float = 0.005
+    gamma: float = 0.99
+    lam: float = 0.95
+    learning_rate: float = 1.0e-3
+    #: rsl-rl's adaptive rule is exactly §7's: ÷1.5 above 2·KL*, ×1.5 below KL*/2, lr in [1e-5, 1e-2].
+    schedule: str = "adaptive"
+    desired_kl: float = 0.01
+    max_grad_norm: float = 1.0
+    optimizer: str = "adam"
+
+
+def _obs_groups() -> dict[str, list[str]]:
+    # §3: the actor reads the 154-dim "policy" group, the critic the privileged 286-dim "critic" group
+    return {"actor": ["policy"], "critic": ["critic"]}
+
+
+@dataclass
+class TrainCfg:
+    task: str = "OTR-G1-Track-v0"
+    num_envs: int = 4096  # §7
+    num_steps_per_env: int = 24  # §7
+    max_iterations: int = 30000  # §7
+    save_interval: int = 500  # §7 (MJ)
+    seed: int = 42
+    #: §7 HS: start with random episode lengths so that time-outs do not all fall on one step.
+    init_at_random_ep_len: bool = True
+    obs_groups: dict[str, list[str]] = field(default_factory=_obs_groups)
+    actor: ActorCfg = field(default_factory=ActorCfg)
+    critic: CriticCfg = field(default_factory=CriticCfg)
+    algorithm: AlgorithmCfg = field(default_factory=AlgorithmCfg)
+    #: Overrides of the environment config (configs/env/track.yaml layout).
+    env: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("num_envs", "num_steps_per_env", "max_iterations", "save_interval"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"training config: {name} must be >= 1, got {getattr(self, name)}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (YAML-safe: tuples become lists)."""
+        return _plain(dataclasses.asdict(self))
+
+    def to_rsl_rl(self) -> dict[str, Any]:
+        """The ``train_cfg`` dictionary of ``rsl_rl.runners.OnPolicyRunner`` (rsl-rl-lib 5.x)."""
+        actor = dataclasses.asdict(self.actor)
+        init_std = actor.pop("init_std")
+        return {
+            "num_steps_per_env": self.num_steps_per_env,
+            "save_interval": self.save_interval,
+            "obs_groups": {k: list(v) for k, v in self.obs_groups.items()},
+            "check_for_nan": True,
+            "logger": "tensorboard",
+            "algorithm": {"class_name": "PPO", **dataclasses.asdict(self.algorithm)},
+            "actor": {"class_name": "MLPModel", **_plain(actor),
+                      "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": init_std,
+                                           "std_type": "scalar"}},
+            "critic": {"class_name": "MLPModel", **_plain(dataclasses.asdict(self.critic))},
+        }
+
+
+def load_train_config(path: str | Path | None = None, overrides: dict | None = None) -> TrainCfg:
+    """Read a YAML file (default ``configs/agents/ppo_track.yaml``, dataclass defaults if that
+    file is absent) and apply ``overrides`` (same nested layout) on top; unknown keys raise."""
+    data: dict = {}
+    if path is not None or DEFAULT_CONFIG.is_file():
+        path = Path(path) if path is not None else DEFAULT_CONFIG
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: training config not found")
+        data = yaml.safe_load(path.read_text()) or {}
+        if not isinstance(data, dict):
+            raise ValueError(f"{path}: top level must be a mapping, got {type(data).__name__}")
+    for key, value in (overrides or {}).items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):
+            data[key] = {**data[key], **value}
+        else:
+            data[key] = value
+    return train_config_from_dict(data)
+
+
+def train_config_from_dict(data: dict) -> TrainCfg:
+    """A TrainCfg from a nested mapping (e.g. the ``train`` section of a run's config.yaml)."""
+    return _build(TrainCfg, data, "train")
+
+
+def _build(cls, data: dict, where: str):
+    if not isinstance(data, dict):
+        raise ValueError(f"training config '{where}' must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"training config '{where}': unknown keys {unknown} (expected some of {sorted(names)})")
+    kwargs = {}
+    for key, value in data.items():
+        tp = hints[key]
+        if dataclasses.is_dataclass(tp):
+            value = _build(tp, value, f"{where}.{key}")
+        elif typing.get_origin(tp) is tuple:
+            value = tuple(value)
+        elif tp is float:
+            value = float(value)
+        kwargs[key] = value
+    return cls(**kwargs)
+
+
+def _plain(value):
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    return value

@@ -1,0 +1,137 @@
+"""``otr evaluate RUN_OR_CHECKPOINT [--reference REF]``: success rate and MPJPE of a policy.
+
+Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
+
+- env i plays clip i mod C from frame 0, without domain randomisation, observation or reset
+  noise (the env's ``evaluation`` mode), and the episode ends with the clip, not a time-out;
+- the policy's deterministic mean action;
+- success: the clip reached its last frame without a tracking termination;
+- MPJPE: root-relative over the 14 tracked bodies, every step an env is alive, including the
+  step it terminates on; per clip and overall (frame-weighted), in mm.
+
+Deterministic physics makes every env on one clip identical, so by default one env runs per
+clip. ``--randomize`` keeps the training randomisation (friction, centre of mass, joint
+offsets, observation noise; pushes off, start at frame 0 without reset noise), so N envs per
+clip give a success *rate* that measures robustness.
+
+Given a run folder, every checkpoint is evaluated (the env is built once) and ``--plot``
+draws MPJPE and success against the checkpoint iteration; given a checkpoint file, only it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import gymnasium
+import torch
+from tensordict import TensorDict
+
+from agents import runs
+from agents.devices import resolve_device
+from agents.metrics import EpisodeAccumulator, summarize
+from agents.policy import TrainedPolicy, load_policy
+from agents.vecenv import make_vec_env
+from envs.mdp.metrics import mpjpe_root_relative
+from otr_gym.reference import InvalidReferenceError, list_references
+
+#: The evaluation episode ends with the clip (on_clip_end "truncate"), never by time-out first.
+NO_TIMEOUT_S = 1.0e6
+_RANDOMIZED = {"command": {"start": "zero", "on_clip_end": "truncate", "reset_noise_enabled": False},
+               "randomization": {"push_lin_vel_mps": [0.0, 0.0, 0.0], "push_ang_vel_radps": [0.0, 0.0, 0.0]}}
+
+
+def eval_env_overrides(train_env_overrides: dict, randomize: bool) -> dict:
+    """The run's env overrides plus the evaluation protocol's."""
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in train_env_overrides.items()}
+    extra = {"sim": {"episode_length_s": NO_TIMEOUT_S}, **(_RANDOMIZED if randomize else {})}
+    for key, value in extra.items():
+        out[key] = {**out.get(key, {}), **value}
+    return out
+
+
+@torch.inference_mode()
+def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
+    """One episode per env from the env's (re)start with ``policy.act(obs TensorDict) -> actions``;
+    returns the ``summarize`` dict."""
+    obs, _ = vec.reset(seed=seed)
+    n = vec.num_envs
+    clip_ids = vec.command.clip.cpu().numpy()
+    acc = EpisodeAccumulator(n, vec.device)
+    max_steps = int(vec.motion.clip_length.max()) + 1
+    for _ in range(max_steps):
+        actions = policy.act(TensorDict(dict(obs), batch_size=[n], device=vec.device))
+        obs, _, terminated, truncated, _ = vec.step(actions)
+        acc.add_frame(mpjpe_root_relative(vec.tracking_state))
+        acc.end_step(terminated, truncated)
+        if acc.all_finished:
+            break
+    names = [Path(name).stem for name in vec.motion.names]
+    return summarize(acc.per_env(), clip_ids, names)
+
+
+def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None, num_envs: int | None = None,
+             device: str | None = None, randomize: bool = False, seed: int = 0, last_only: bool = False) -> dict:
+    """Results of one checkpoint, or of every checkpoint of a run folder (oldest first; only
+    the latest with ``last_only``)."""
+    target = Path(run_or_checkpoint)
+    ckpts = runs.checkpoints(target) if target.is_dir() and not last_only else [runs.resolve_checkpoint(target)]
+    torch_device = resolve_device(device)
+    first = load_policy(ckpts[-1], torch_device)
+    if reference is None:
+        reference = first.run_config["reference"]
+    if num_envs is None:
+        num_envs = len(list_references(reference)) * (256 if randomize else 1)
+    if num_envs < 1:
+        raise ValueError(f"--num-envs must be >= 1, got {num_envs}")
+    env = make_vec_env(first.train_cfg.task, reference, num_envs, str(torch_device),
+                       eval_env_overrides(first.train_cfg.env, randomize), evaluation=not randomize, seed=seed)
+    vec = env.unwrapped
+    results = []
+    for ckpt in ckpts:
+        policy = first if ckpt == first.checkpoint else load_policy(ckpt, torch_device)
+        result = {"checkpoint": str(ckpt.path), "iteration": ckpt.iteration, **run_episodes(vec, policy, seed)}
+        results.append(result)
+        print(f"iteration {ckpt.iteration:>6}: success {100 * result['success_rate']:5.1f} %  "
+              f"MPJPE {result['mpjpe_mm']:7.1f} mm  ({result['envs']} envs, {result['frames']} frames)")
+    env.close()
+    ref = Path(reference)
+    return {
+        "run": ckpts[-1].run_dir.name,
+        "reference": {"name": ref.name if ref.is_dir() else ref.stem, "path": str(ref.resolve())},
+        "protocol": {"randomize": randomize, "num_envs": num_envs, "seed": seed, "device": str(torch_device),
+                     "start_frame": 0, "action": "deterministic mean", "mpjpe": "root-relative, 14 bodies, mm"},
+        "final": results[-1],
+        "checkpoints": results,
+    }
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="run folder (every checkpoint) or a model_<it>.pt checkpoint")
+    parser.add_argument("--reference", help="reference .npz or folder of them (default: the run's own)")
+    parser.add_argument("--num-envs", type=int, help="parallel envs (default: one per clip; 256 per clip "
+                        "with --randomize)")
+    parser.add_argument("--device", help="cuda, cuda:K or cpu (default: cuda if available)")
+    parser.add_argument("--randomize", action="store_true", help="keep domain randomisation and observation "
+                        "noise (pushes off) to measure robustness")
+    parser.add_argument("--last", action="store_true", help="of a run folder, only the latest checkpoint")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--json", help="write the results here (atomically)")
+    parser.add_argument("--plot", help="PNG of MPJPE and success against the checkpoint iteration")
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        results = evaluate(args.run, args.reference, args.num_envs, args.device, args.randomize, args.seed,
+                           args.last)
+    except (runs.RunError, InvalidReferenceError, ValueError, gymnasium.error.Error) as exc:
+        print(f"otr evaluate: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(f"wrote {runs.write_json(args.json, results)}")
+    if args.plot:
+        from agents.plots import plot_evaluation
+
+        print(f"wrote {plot_evaluation(results, args.plot)}")
+    return 0

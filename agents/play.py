@@ -1,0 +1,77 @@
+"""``otr play RUN --video out.mp4``: a video of the policy tracking its reference.
+
+Runs the single CPU-MuJoCo env (``gymnasium.make``) in evaluation mode (frame 0, no
+randomisation or noise, the episode ends with the clip or a termination) with the policy's
+mean action, and records the env's frames: the robot plus a translucent ghost of the reference.
+Offscreen rendering needs ``MUJOCO_GL=egl`` (GPU / EGL) or ``osmesa``; egl is the default here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import gymnasium  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from tensordict import TensorDict  # noqa: E402
+
+from agents import runs  # noqa: E402
+from agents.evaluate import eval_env_overrides  # noqa: E402
+from agents.policy import load_policy  # noqa: E402
+from otr_gym.reference import InvalidReferenceError  # noqa: E402
+
+
+def play(run_or_checkpoint, video: str | Path, reference: str | Path | None = None, seconds: float | None = None,
+         width: int = 640, height: int = 480) -> dict:
+    """Record one evaluation episode to ``video`` (mp4, atomically); returns its outcome."""
+    import imageio.v2 as imageio
+
+    import otr_gym  # noqa: F401  (registers the environments)
+    from envs.config import load_track_config
+
+    policy = load_policy(run_or_checkpoint, "cpu")
+    reference = reference or policy.run_config["reference"]
+    cfg = load_track_config(overrides=eval_env_overrides(policy.train_cfg.env, randomize=False))
+    env = gymnasium.make(policy.train_cfg.task, reference=reference, render_mode="rgb_array", cfg=cfg,
+                         evaluation=True, width=width, height=height)
+    fps = env.metadata["render_fps"]
+    max_steps = None if seconds is None else int(round(seconds * fps))
+    obs, _ = env.reset(seed=0)
+    steps, terminated, truncated = 0, False, False
+    with runs.atomic_path(video) as tmp:
+        with imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=8, format="FFMPEG") as writer:
+            writer.append_data(env.render())
+            while not (terminated or truncated) and (max_steps is None or steps < max_steps):
+                batch = TensorDict({k: torch.from_numpy(np.asarray(v))[None] for k, v in obs.items()}, batch_size=[1])
+                action = policy.act(batch)[0].numpy()
+                obs, _, terminated, truncated, _ = env.step(action)
+                writer.append_data(env.render())
+                steps += 1
+    env.close()
+    return {"video": str(video), "frames": steps + 1, "fps": fps, "terminated": terminated,
+            "clip_completed": bool(truncated and not terminated)}
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("run", help="run folder (its latest checkpoint) or a model_<it>.pt checkpoint")
+    parser.add_argument("--video", required=True, help="output .mp4")
+    parser.add_argument("--reference", help="reference .npz (default: the run's own; a folder plays its first clip)")
+    parser.add_argument("--seconds", type=float, help="stop after this long (default: the whole clip)")
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=480)
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        out = play(args.run, args.video, args.reference, args.seconds, args.width, args.height)
+    except (runs.RunError, InvalidReferenceError, ValueError, gymnasium.error.Error) as exc:
+        print(f"otr play: {exc}", file=sys.stderr)
+        return 2
+    ending = "clip completed" if out["clip_completed"] else "terminated" if out["terminated"] else "stopped"
+    print(f"wrote {out['video']}: {out['frames']} frames at {out['fps']} fps ({ending})")
+    return 0

@@ -1,0 +1,124 @@
+"""PNG figures of a run: training curves (from its TensorBoard events) and evaluation results.
+
+Written atomically; matplotlib's Agg backend, so no display is needed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from agents import runs  # noqa: E402
+
+#: TensorBoard tag -> panel title; rsl-rl's logger writes the first three, the adapter the rest.
+TRAINING_PANELS = {
+    "Train/mean_reward": "mean episode reward",
+    "Train/mean_episode_length": "mean episode length (steps)",
+    "Perf/total_fps": "env steps / s",
+    "metric/mpjpe_mm": "MPJPE, root-relative (mm)",
+    "metric/success_rate": "episodes without termination",
+}
+
+
+def read_scalars(run_dir: str | Path) -> dict[str, tuple[list[int], list[float]]]:
+    """tag -> (iterations, values) over all event files of the run. A resumed run re-logs the
+    iterations after its last checkpoint; the later value of an iteration wins."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    files = sorted(Path(run_dir).glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime)
+    if not files:
+        raise runs.RunError(f"{run_dir}: no TensorBoard event files")
+    merged: dict[str, dict[int, float]] = {}
+    for path in files:
+        acc = EventAccumulator(str(path), size_guidance={"scalars": 0})
+        acc.Reload()
+        for tag in acc.Tags()["scalars"]:
+            merged.setdefault(tag, {}).update({e.step: e.value for e in acc.Scalars(tag)})
+    return {tag: (sorted(v), [v[k] for k in sorted(v)]) for tag, v in merged.items()}
+
+
+def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
+    scalars = read_scalars(run_dir)
+    panels = [(tag, title) for tag, title in TRAINING_PANELS.items() if tag in scalars]
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (tag, title) in zip(axes.flat[:len(panels)], panels, strict=True):
+        steps, values = scalars[tag]
+        ax.plot(steps, values, lw=1.2)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    fig.suptitle(Path(run_dir).name, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, out_png)
+
+
+def plot_evaluation(results: dict, out_png: str | Path) -> Path:
+    """MPJPE and success rate against the checkpoint iteration (``evaluate`` results)."""
+    evals = results["checkpoints"]
+    its = [e["iteration"] for e in evals]
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    ax.plot(its, [e["mpjpe_mm"] for e in evals], "o-", color="tab:blue", label="MPJPE (mm)")
+    ax.set_xlabel("checkpoint iteration")
+    ax.set_ylabel("MPJPE, root-relative (mm)", color="tab:blue")
+    ax.grid(alpha=0.3)
+    twin = ax.twinx()
+    twin.plot(its, [100 * e["success_rate"] for e in evals], "s--", color="tab:green", label="success (%)")
+    twin.set_ylabel("success (%)", color="tab:green")
+    twin.set_ylim(-5, 105)
+    ax.set_title(f"{results['run']} on {results['reference']['name']}", fontsize=9)
+    fig.tight_layout()
+    return _save(fig, out_png)
+
+
+def _save(fig, out_png: str | Path) -> Path:
+    try:
+        return runs.atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=110))
+    finally:
+        plt.close(fig)
+
+
+def training_summary(run_dir: str | Path) -> dict:
+    """Last values of the main curves and the throughput (median over iterations, so the
+    first iteration's warm-up does not count)."""
+    import statistics
+
+    scalars = read_scalars(run_dir)
+    last = {tag: scalars[tag][1][-1] for tag in TRAINING_PANELS if tag in scalars}
+    steps, fps = scalars.get("Perf/total_fps", ([], []))
+    return {
+        "run": Path(run_dir).name,
+        "iterations": (steps[-1] + 1) if steps else 0,
+        "median_fps": statistics.median(fps) if fps else None,
+        "learning_minutes": sum(scalars["Perf/collection_time"][1] + scalars["Perf/learning_time"][1]) / 60.0
+        if "Perf/collection_time" in scalars else None,
+        "last": last,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m agents.plots",
+                                     description="training curves (PNG) and summary (JSON) of a run")
+    parser.add_argument("run", help="run folder")
+    parser.add_argument("--png", required=True, help="output PNG of the training curves")
+    parser.add_argument("--json", help="output JSON summary (iterations, median FPS, last values)")
+    args = parser.parse_args(argv)
+    print(f"wrote {plot_training(args.run, args.png)}")
+    if args.json:
+        summary = training_summary(args.run)
+        print(f"wrote {runs.write_json(args.json, summary)}: {summary['iterations']} iterations, "
+              f"median {summary['median_fps']} env steps/s")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

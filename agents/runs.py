@@ -1,0 +1,144 @@
+"""Run folders and checkpoints.
+
+A training run is one folder ``<log_dir>/<task>_<reference stem>_<YYYYmmdd-HHMMSS>/``::
+
+    config.yaml          resolved training config + how the run was started (reference, device)
+    env_spec.json        the environment's specification (joint order, gains, observation layout, fps)
+    model_<it>.pt        rsl-rl checkpoints after iteration <it> (written atomically)
+    events.out.tfevents.*  TensorBoard scalars (rewards per term, episode length, success, MPJPE, FPS)
+    git/                 code state of the checkout (rsl-rl's logger)
+
+Every file is written to a temporary name in the same folder and renamed, so an interrupted
+write never leaves a truncated file under the final name.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import yaml
+
+CONFIG_FILE = "config.yaml"
+ENV_SPEC_FILE = "env_spec.json"
+_CHECKPOINT = re.compile(r"^model_(\d+)\.pt$")
+
+
+class RunError(FileNotFoundError):
+    """A run folder or checkpoint that cannot be used; the message names the path and the problem."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    path: Path
+    iteration: int
+
+    @property
+    def run_dir(self) -> Path:
+        return self.path.parent
+
+
+def run_name(task: str, reference: str | Path, stamp: str | None = None) -> str:
+    """``<task>_<reference stem>_<timestamp>``; a reference folder contributes its own name."""
+    ref = Path(reference)
+    stem = ref.name if ref.is_dir() else ref.stem
+    return f"{task}_{stem}_{stamp or time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def create_run_dir(log_dir: str | Path, task: str, reference: str | Path) -> Path:
+    """A new, empty run folder (a numeric suffix avoids collisions within the same second)."""
+    base = Path(log_dir) / run_name(task, reference)
+    path, k = base, 1
+    while path.exists():
+        path, k = base.with_name(f"{base.name}-{k}"), k + 1
+    path.mkdir(parents=True)
+    return path
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path next to ``path`` (same suffix) for a writer that wants a file name;
+    renamed onto ``path`` when the block succeeds, deleted when it raises."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; the final file gets the usual mode
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write(path: str | Path, write: Callable[[object], None], binary: bool = True) -> Path:
+    """Call ``write(file)`` on a temporary file next to ``path``, then rename it onto ``path``."""
+    with atomic_path(path) as tmp, open(tmp, "wb" if binary else "w") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    return Path(path)
+
+
+def write_yaml(path: str | Path, data: dict) -> Path:
+    return atomic_write(path, lambda f: yaml.safe_dump(data, f, sort_keys=False), binary=False)
+
+
+def write_json(path: str | Path, data) -> Path:
+    return atomic_write(path, lambda f: json.dump(data, f, indent=2), binary=False)
+
+
+def read_yaml(path: Path) -> dict:
+    if not path.is_file():
+        raise RunError(f"{path}: missing (is {path.parent} a training run folder?)")
+    data = yaml.safe_load(path.read_text())
+    if not isinstance(data, dict):
+        raise RunError(f"{path}: expected a YAML mapping")
+    return data
+
+
+def read_env_spec(run_dir: Path) -> dict:
+    path = Path(run_dir) / ENV_SPEC_FILE
+    if not path.is_file():
+        raise RunError(f"{path}: missing (is {run_dir} a training run folder?)")
+    return json.loads(path.read_text())
+
+
+def checkpoints(run_dir: str | Path) -> list[Checkpoint]:
+    """The run's checkpoints sorted by iteration; a missing or empty folder raises RunError."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise RunError(f"{run_dir}: no such run folder")
+    found = sorted((Checkpoint(p, int(m.group(1))) for p in run_dir.iterdir()
+                    if (m := _CHECKPOINT.match(p.name))), key=lambda c: c.iteration)
+    if not found:
+        raise RunError(f"{run_dir}: run folder holds no checkpoint (model_<iteration>.pt)")
+    return found
+
+
+def resolve_checkpoint(run_or_checkpoint: str | Path) -> Checkpoint:
+    """A checkpoint file as given, or the latest checkpoint of a run folder."""
+    path = Path(run_or_checkpoint)
+    if path.is_dir():
+        return checkpoints(path)[-1]
+    if not path.is_file():
+        raise RunError(f"{path}: no such run folder or checkpoint file")
+    m = _CHECKPOINT.match(path.name)
+    if m is None:
+        raise RunError(f"{path}: not a checkpoint (expected a run folder or model_<iteration>.pt)")
+    return Checkpoint(path, int(m.group(1)))
+
+
+def run_config(run_dir: str | Path) -> dict:
+    """The ``config.yaml`` of a run: {"train": …, "reference": …, "device": …, …}."""
+    return read_yaml(Path(run_dir) / CONFIG_FILE)

@@ -1,0 +1,148 @@
+"""``otr train``: PPO (rsl-rl-lib's OnPolicyRunner) on OTR-G1-Track-v0.
+
+config (configs/agents/ppo_track.yaml + CLI) -> vector env -> VecEnv adapter -> runner.
+
+A new run gets a folder ``<log-dir>/<task>_<reference stem>_<timestamp>/`` (see agents.runs);
+``--resume RUN`` continues a run in its own folder from its latest checkpoint (or the given
+``model_<it>.pt``): same iteration counter, optimiser, normalisers, adaptive-sampling
+statistics. ``--iterations N`` runs N more iterations; without it training runs up to the
+config's ``max_iterations`` in total. ``--max-minutes M`` stops after the first iteration that
+ends past M minutes of learning (the clock starts with the first rollout: environment build
+and compilation are not charged). Ctrl-C, like the budget, stops between two iterations and
+writes a checkpoint first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import random
+import sys
+import time
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import torch
+
+from agents import runs
+from agents.config import TrainCfg, load_train_config, train_config_from_dict
+from agents.devices import resolve_device
+from agents.runner import TrackingRunner
+from agents.stopping import StopConditions, TrainingStopped
+from agents.vecenv import RslRlVecEnv, make_vec_env
+from otr_gym.reference import InvalidReferenceError, list_references
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+
+
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--task", default=None, help="environment id (default: the config's, OTR-G1-Track-v0)")
+    parser.add_argument("--reference", help="reference .npz or folder of them (required unless --resume)")
+    parser.add_argument("--num-envs", type=int, help="parallel environments (default: config, 4096)")
+    parser.add_argument("--device", help="torch/warp device: cuda, cuda:K or cpu (default: cuda if available)")
+    parser.add_argument("--iterations", type=int, help="PPO iterations to run now (default: up to the "
+                        "config's max_iterations in total)")
+    parser.add_argument("--max-minutes", type=float, help="wall-clock budget of the learning loop, minutes")
+    parser.add_argument("--log-dir", default="runs", help="parent folder of new run folders (default: runs/)")
+    parser.add_argument("--resume", metavar="RUN", help="run folder (latest checkpoint) or model_<it>.pt to continue")
+    parser.add_argument("--seed", type=int, help="random seed (default: config, 42)")
+    parser.add_argument("--save-interval", type=int, help="checkpoint every N iterations (default: config, 500)")
+    parser.add_argument("--config", help="training YAML (default: configs/agents/ppo_track.yaml)")
+
+
+def _overrides(args: argparse.Namespace) -> dict:
+    keys = {"task": args.task, "num_envs": args.num_envs, "seed": args.seed, "save_interval": args.save_interval}
+    return {k: v for k, v in keys.items() if v is not None}
+
+
+def _reference_info(reference: Path) -> dict:
+    clips = list_references(reference)
+    return {"name": reference.name if reference.is_dir() else reference.stem, "path": str(reference),
+            "clips": [c.name for c in clips]}
+
+
+def _setup(args: argparse.Namespace) -> tuple[TrainCfg, Path, Path | None, runs.Checkpoint | None, dict]:
+    """(config, reference, run folder (None: new run), checkpoint to resume, run record):
+    everything that can be checked before the (slow) environment is built."""
+    if args.iterations is not None and args.iterations < 1:
+        raise ValueError(f"--iterations must be >= 1, got {args.iterations}")
+    if args.resume:
+        ckpt = runs.resolve_checkpoint(args.resume)
+        record = runs.run_config(ckpt.run_dir)
+        cfg = train_config_from_dict({**record["train"], **_overrides(args)})
+        reference = Path(args.reference or record["reference"])
+        run_dir = ckpt.run_dir
+        if args.iterations is None and ckpt.iteration + 1 >= cfg.max_iterations:
+            raise ValueError(f"{ckpt.path}: the run already completed max_iterations {cfg.max_iterations} "
+                             "(pass --iterations N to train further)")
+    else:
+        if not args.reference:
+            raise ValueError("--reference is required for a new run (or give --resume RUN)")
+        ckpt, record = None, {}
+        cfg = load_train_config(args.config, _overrides(args))
+        reference = Path(args.reference)
+        run_dir = None
+    info = _reference_info(reference.resolve())
+    record.update(train=cfg.to_dict(), reference=info["path"], reference_info=info)
+    record.setdefault("sessions", []).append({
+        "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "args": {k: v for k, v in vars(args).items() if v is not None and not callable(v)},
+        "resumed_from": str(ckpt.path) if ckpt else None})
+    return cfg, reference, run_dir, ckpt, record
+
+
+def _seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def train(args: argparse.Namespace) -> int:
+    device = resolve_device(args.device)
+    cfg, reference, run_dir, ckpt, record = _setup(args)
+    record["device"] = str(device)
+    _seed_everything(cfg.seed)
+
+    env = make_vec_env(cfg.task, reference, cfg.num_envs, str(device), cfg.env, seed=cfg.seed)
+    stop = StopConditions(args.max_minutes)
+    vec = RslRlVecEnv(env, cfg.num_steps_per_env, seed=cfg.seed, stop=stop)
+    if run_dir is None:
+        run_dir = runs.create_run_dir(args.log_dir, cfg.task, reference)
+    print(f"run folder: {run_dir}")
+    runs.write_yaml(run_dir / runs.CONFIG_FILE, record)
+    runs.write_json(run_dir / runs.ENV_SPEC_FILE, {
+        "task": cfg.task, "num_actions": vec.num_actions, "observation_dims": vec.vec.obs_dims,
+        "policy_metadata": vec.vec.policy_metadata()})
+
+    runner = TrackingRunner(vec, cfg.to_rsl_rl(), log_dir=str(run_dir), device=str(device))
+    runner.add_git_repo_to_log(str(PROJECT_ROOT))
+    if ckpt is not None:
+        runner.load(str(ckpt.path), map_location=str(device))
+        print(f"resumed from {ckpt.path} at iteration {runner.current_learning_iteration}")
+    iterations = args.iterations or cfg.max_iterations - runner.current_learning_iteration
+    status = 0
+    with stop:
+        try:
+            runner.learn(iterations, init_at_random_ep_len=cfg.init_at_random_ep_len and ckpt is None)
+        except TrainingStopped as stopped:
+            print(f"training stopped: {stopped.reason} after {stopped.completed} iteration(s) of this session")
+            if stopped.completed > 0:
+                runner.save(str(run_dir / f"model_{runner.current_learning_iteration}.pt"))
+            status = 130 if stop.interrupted else 0
+        finally:
+            if runner.logger.writer is not None:
+                runner.logger.writer.close()
+    try:
+        latest = runs.checkpoints(run_dir)[-1]
+        print(f"latest checkpoint: {latest.path} (iteration {latest.iteration})")
+    except runs.RunError:
+        print("no checkpoint written (stopped before the first iteration completed)")
+    return status
+
+
+def main(args: argparse.Namespace) -> int:
+    try:
+        return train(args)
+    except (runs.RunError, InvalidReferenceError, ValueError, FileNotFoundError, gymnasium.error.Error) as exc:
+        print(f"otr train: {exc}", file=sys.stderr)
+        return 2
