@@ -8,12 +8,11 @@ so a run can be resumed, evaluated and exported without the original YAML.
 from __future__ import annotations
 
 import dataclasses
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
+from otr_gym.config import from_dict, load_yaml_mapping, merge
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "agents" / "ppo_track.yaml"
 
@@ -105,46 +104,13 @@ class TrainCfg:
 def load_train_config(path: str | Path | None = None, overrides: dict | None = None) -> TrainCfg:
     """Read a YAML file (default ``configs/agents/ppo_track.yaml``, dataclass defaults if that
     file is absent) and apply ``overrides`` (same nested layout) on top; unknown keys raise."""
-    data: dict = {}
-    if path is not None or DEFAULT_CONFIG.is_file():
-        path = Path(path) if path is not None else DEFAULT_CONFIG
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: training config not found")
-        data = yaml.safe_load(path.read_text()) or {}
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: top level must be a mapping, got {type(data).__name__}")
-    for key, value in (overrides or {}).items():
-        if isinstance(value, dict) and isinstance(data.get(key), dict):
-            data[key] = {**data[key], **value}
-        else:
-            data[key] = value
+    data = merge(load_yaml_mapping(path, DEFAULT_CONFIG, "training"), overrides)
     return train_config_from_dict(data)
 
 
 def train_config_from_dict(data: dict) -> TrainCfg:
     """A TrainCfg from a nested mapping (e.g. the ``train`` section of a run's config.yaml)."""
-    return _build(TrainCfg, data, "train")
-
-
-def _build(cls, data: dict, where: str):
-    if not isinstance(data, dict):
-        raise ValueError(f"training config '{where}' must be a mapping, got {data!r}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"training config '{where}': unknown keys {unknown} (expected some of {sorted(names)})")
-    kwargs = {}
-    for key, value in data.items():
-        tp = hints[key]
-        if dataclasses.is_dataclass(tp):
-            value = _build(tp, value, f"{where}.{key}")
-        elif typing.get_origin(tp) is tuple:
-            value = tuple(value)
-        elif tp is float:
-            value = float(value)
-        kwargs[key] = value
-    return cls(**kwargs)
+    return from_dict(TrainCfg, data, "train")
 
 
 def _plain(value):

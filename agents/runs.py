@@ -15,16 +15,15 @@ write never leaves a truncated file under the final name.
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
+
+# the one atomic-output implementation, re-exported for the agents' writers
+from otr_gym.io import atomic_path, atomic_write, write_json  # noqa: F401
 
 CONFIG_FILE = "config.yaml"
 ENV_SPEC_FILE = "env_spec.json"
@@ -62,40 +61,8 @@ def create_run_dir(log_dir: str | Path, task: str, reference: str | Path) -> Pat
     return path
 
 
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """A temporary path next to ``path`` (same suffix) for a writer that wants a file name;
-    renamed onto ``path`` when the block succeeds, deleted when it raises."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; the final file gets the usual mode
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write(path: str | Path, write: Callable[[object], None], binary: bool = True) -> Path:
-    """Call ``write(file)`` on a temporary file next to ``path``, then rename it onto ``path``."""
-    with atomic_path(path) as tmp, open(tmp, "wb" if binary else "w") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    return Path(path)
-
-
 def write_yaml(path: str | Path, data: dict) -> Path:
     return atomic_write(path, lambda f: yaml.safe_dump(data, f, sort_keys=False), binary=False)
-
-
-def write_json(path: str | Path, data) -> Path:
-    return atomic_write(path, lambda f: json.dump(data, f, indent=2), binary=False)
 
 
 def read_yaml(path: Path) -> dict:

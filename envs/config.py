@@ -8,15 +8,12 @@ named by function: a reward ``fn`` is looked up in ``envs.mdp.rewards``, a termi
 
 from __future__ import annotations
 
-import dataclasses
-import typing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from otr_gym import robot
+from otr_gym.config import from_dict, load_yaml_mapping, merge
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "track.yaml"
 
@@ -187,51 +184,5 @@ class TrackEnvCfg:
 def load_track_config(path: str | Path | None = None, overrides: dict | None = None) -> TrackEnvCfg:
     """Read a YAML file (default ``configs/env/track.yaml``; dataclass defaults if that file is
     absent) and apply ``overrides`` (nested dict, same layout) on top."""
-    data: dict = {}
-    if path is not None or DEFAULT_CONFIG.is_file():
-        path = Path(path) if path is not None else DEFAULT_CONFIG
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: environment config not found")
-        with open(path) as f:
-            data = yaml.safe_load(f) or {}
-        if not isinstance(data, dict):
-            raise ValueError(f"{path}: top level must be a mapping, got {type(data).__name__}")
-    if overrides:
-        data = _merge(data, overrides)
-    return _build(TrackEnvCfg, data, "track")
-
-
-def _merge(base: dict, extra: dict) -> dict:
-    out = dict(base)
-    for key, value in extra.items():
-        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
-    return out
-
-
-def _build(cls, data: dict, where: str):
-    """Instantiate dataclass ``cls`` from a plain mapping, converting nested types; unknown keys raise."""
-    if not isinstance(data, dict):
-        raise ValueError(f"config '{where}' must be a mapping, got {data!r}")
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise ValueError(f"config '{where}': unknown keys {unknown} (expected some of {sorted(names)})")
-    return cls(**{k: _convert(hints[k], v, f"{where}.{k}") for k, v in data.items()})
-
-
-def _convert(tp, value, where: str):
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if dataclasses.is_dataclass(tp):
-        return _build(tp, value, where)
-    if origin is tuple:
-        return tuple(value)
-    if origin is list and args and dataclasses.is_dataclass(args[0]):
-        return [_build(args[0], v, f"{where}[{i}]") for i, v in enumerate(value)]
-    if origin is dict and len(args) == 2 and dataclasses.is_dataclass(args[1]):
-        return {k: _build(args[1], v, f"{where}.{k}") for k, v in value.items()}
-    if tp is float:
-        return float(value)
-    if tp is int and not isinstance(value, bool):
-        return int(value)
-    return value
+    data = merge(load_yaml_mapping(path, DEFAULT_CONFIG, "environment"), overrides)
+    return from_dict(TrackEnvCfg, data, "track")

@@ -36,8 +36,6 @@ read too. Saving is atomic (temporary file + rename).
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -45,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from otr_gym import robot
+from otr_gym.io import save_npz
 from otr_gym.rotations import (
     angular_velocity_from_quats,
     linear_velocity_from_positions,
@@ -342,17 +341,7 @@ class Reference:
     def save(self, path: str | Path) -> Path:
         """Validate, then write atomically (temporary file in the same folder + rename)."""
         self.validate()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, **self.to_arrays())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return save_npz(path, self.to_arrays())
 
     @classmethod
     def load(cls, path: str | Path) -> Reference:

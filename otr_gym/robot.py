@@ -186,22 +186,23 @@ def soft_joint_limits(factor: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
     return mid - factor * half, mid + factor * half
 
 
-def joint_indices(names) -> np.ndarray:
-    """Indices of ``names`` in the G1 joint order; unknown names raise with the list of them."""
-    index = {n: i for i, n in enumerate(JOINT_NAMES)}
+def indices_by_name(names, known, what: str) -> np.ndarray:
+    """Indices of ``names`` in the sequence ``known``; unknown names raise KeyError listing them."""
+    index = {n: i for i, n in enumerate(known)}
     unknown = [n for n in names if n not in index]
     if unknown:
-        raise KeyError(f"unknown G1 joint names: {unknown}")
+        raise KeyError(f"unknown {what} names: {unknown}")
     return np.array([index[n] for n in names], dtype=np.int64)
+
+
+def joint_indices(names) -> np.ndarray:
+    """Indices of ``names`` in the G1 joint order."""
+    return indices_by_name(names, JOINT_NAMES, "G1 joint")
 
 
 def body_indices(names) -> np.ndarray:
-    """Indices of ``names`` in BODY_NAMES; unknown names raise with the list of them."""
-    index = {n: i for i, n in enumerate(BODY_NAMES)}
-    unknown = [n for n in names if n not in index]
-    if unknown:
-        raise KeyError(f"unknown G1 body names: {unknown}")
-    return np.array([index[n] for n in names], dtype=np.int64)
+    """Indices of ``names`` in BODY_NAMES."""
+    return indices_by_name(names, BODY_NAMES, "G1 body")
 
 
 def default_qpos() -> np.ndarray:

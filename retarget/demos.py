@@ -28,16 +28,15 @@ sinks 8 cm, the SMPL-X squat 2 cm; ``source["ground_shift_m"]`` records it.
 from __future__ import annotations
 
 import json
-import os
 import pickle
 import re
-import tempfile
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from otr_gym.io import save_npz
 from otr_gym.rotations import quat_from_rotvec, quat_mul, quat_normalize, quat_to_matrix, xyzw_to_wxyz
 from retarget.meshes import InvalidMeshError, load_mesh
 
@@ -153,17 +152,7 @@ class Demonstration:
     def save(self, path: str | Path) -> Path:
         """Validate, then write our ``.npz`` atomically (temporary file in the same folder + rename)."""
         self.validate()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                np.savez_compressed(f, **_to_arrays(self))
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-        return path
+        return save_npz(path, _to_arrays(self))
 
     @classmethod
     def load(cls, path: str | Path) -> Demonstration:

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import tempfile
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -40,6 +39,7 @@ import potpourri3d as pp3d
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from otr_gym.io import save_npz
 from retarget.meshes import InvalidMeshError, TriMesh, as_trimesh, check_encloses_volume, load_mesh, signed_distance
 
 #: Bumped whenever the content or layout of cached grids changes.
@@ -353,19 +353,6 @@ def default_cache_dir() -> Path:
     return Path(os.environ.get("OTR_CACHE_DIR", Path.home() / ".cache" / "otr-gym"))
 
 
-def save_npz_atomic(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """Write an uncompressed npz through a temporary file in the same folder + rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def cached_arrays(path: Path, key: str, build: Callable[[], dict[str, np.ndarray]],
                   check: Callable[[dict[str, np.ndarray]], None]) -> dict[str, np.ndarray]:
     """Load ``path`` if it holds ``key`` and passes ``check``; otherwise build, save, return.
@@ -384,7 +371,7 @@ def cached_arrays(path: Path, key: str, build: Callable[[], dict[str, np.ndarray
         except Exception as exc:  # noqa: BLE001 - any unreadable or invalid file is rebuilt, never trusted
             warnings.warn(f"{path}: invalid cache file ({type(exc).__name__}: {exc}); rebuilding", stacklevel=3)
     arrays = build()
-    save_npz_atomic(path, {**arrays, "cache_key": np.array(key)})
+    save_npz(path, {**arrays, "cache_key": np.array(key)}, compressed=False)
     return arrays
 
 
@@ -563,4 +550,4 @@ def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache
 
 __all__ = ["Channel", "GeometryConfig", "GroundChannel", "InvalidMeshError", "ProximityQuery", "SDFChannel",
            "SurfaceGeodesics", "SurfaceSamples", "VoxelGrid", "build_sdf_grid", "cached_arrays",
-           "default_cache_dir", "load_channel", "sample_surface", "save_npz_atomic"]
+           "default_cache_dir", "load_channel", "sample_surface"]

@@ -29,6 +29,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from otr_gym import robot
+from otr_gym.robot import indices_by_name
 from otr_gym.rotations import matrix_to_quat, quat_conj, quat_from_rotvec, quat_mul, quat_to_matrix
 from retarget.demos import HumanSurface
 
@@ -111,11 +112,7 @@ STYLE_LINKS: dict[str, str] = {
 
 def part_index(names) -> np.ndarray:
     """Indices of part ``names`` in PART_NAMES; unknown names raise with the list of them."""
-    index = {n: i for i, n in enumerate(PART_NAMES)}
-    unknown = [n for n in names if n not in index]
-    if unknown:
-        raise KeyError(f"unknown human part names: {unknown} (known: {PART_NAMES})")
-    return np.array([index[n] for n in names], dtype=np.int64)
+    return indices_by_name(names, PART_NAMES, "human part")
 
 
 # ------------------------------------------------------------------ skeleton

@@ -79,7 +79,8 @@ def main(args: argparse.Namespace) -> int:
     from retarget.demos import InvalidDemonstrationError, load_demonstration
     from retarget.evaluation.alignment import AlignmentError
     from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
-    from retarget.evaluation.report import format_scale_notes, format_table, read_json, write_json
+    from otr_gym.io import write_json
+    from retarget.evaluation.report import format_scale_notes, format_table, read_json
     from retarget.evaluation.sequence import dataset_medians, evaluate_sequence
     from retarget.meshes import InvalidMeshError
 

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 from retarget.evaluation.sequence import TABLE_COLUMNS, dataset_medians
@@ -65,22 +63,6 @@ def format_scale_notes(records: list[dict]) -> str:
         out.append(f"{r['name']}: sc {s['sc']:.4f} ({s['source']}; {fit}; robot height / stature "
                    f"{s['stature_sc']:.4f})")
     return "\n".join(out)
-
-
-def write_json(path: str | Path, payload: dict) -> Path:
-    """Write ``payload`` as JSON atomically (temporary file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(payload, f, indent=1, ensure_ascii=False, allow_nan=False)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600; a report is meant to be read by others
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def read_json(path: str | Path) -> dict:

@@ -1,0 +1,57 @@
+"""Atomic file output: every file we write appears whole under its final name or not at all.
+
+A writer gets a temporary file in the destination folder (same file system, so the final
+``os.replace`` is atomic); on success it is renamed onto the destination, on any exception
+(Ctrl-C included) it is deleted and the previous file, if any, stays untouched.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path next to ``path`` (same suffix, for writers that want a file name);
+    renamed onto ``path`` when the block succeeds, deleted when it raises."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; outputs get the usual mode
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write(path: str | Path, write: Callable[[object], None], binary: bool = True) -> Path:
+    """Call ``write(file)`` on a temporary file next to ``path``, fsync, then rename it onto ``path``."""
+    with atomic_path(path) as tmp, open(tmp, "wb" if binary else "w", encoding=None if binary else "utf-8") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    return Path(path)
+
+
+def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool = True) -> Path:
+    """``np.savez(_compressed)`` atomically."""
+    saver = np.savez_compressed if compressed else np.savez
+    return atomic_write(path, lambda f: saver(f, **arrays))
+
+
+def write_json(path: str | Path, payload, indent: int = 2) -> Path:
+    """JSON atomically; NaN/inf are refused (they are not JSON)."""
+    return atomic_write(path, lambda f: json.dump(payload, f, indent=indent, ensure_ascii=False, allow_nan=False),
+                        binary=False)
