@@ -1,0 +1,183 @@
+"""G1 kinematics for the retargeting solver: link poses, link Jacobians, capsule self-distance.
+
+Everything is batched over the 30 G1 links (``otr_gym.robot.BODY_NAMES`` order). Pinocchio
+configurations are ``[xyz, quat xyzw, 29 joints]``; its tangent ``δv`` (35) is the free-flyer
+twist in the **base frame** followed by the joint rates, and ``q ⊕ δv = pin.integrate``.
+
+A link Jacobian ``J6`` (6, nv) is Pinocchio's LOCAL_WORLD_ALIGNED Jacobian at the link origin:
+rows 0–2 the world velocity of the origin, rows 3–5 the world angular velocity. A point ``x``
+rigidly attached to the link moves as ``ẋ = [I, −[x − o]×] J6 δv``; a scalar residual whose
+world gradient is ``a`` therefore has the row ``φᵀ J6`` with ``φ = (a, (x − o) × a)``. Every
+residual and constraint of the solver is written through such 6-vectors φ (see
+``retarget.residuals``), which is what lets the solver merge rows per link.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import pinocchio as pin
+
+from otr_gym import robot
+from otr_gym.robot_geometry import collision_capsules
+from otr_gym.rotations import skew
+
+NUM_LINKS = len(robot.BODY_NAMES)
+
+
+@dataclass(frozen=True)
+class LinkFrames:
+    """World poses and LOCAL_WORLD_ALIGNED Jacobians of the 30 links at one configuration."""
+
+    rot: np.ndarray  # (L, 3, 3) link → world
+    pos: np.ndarray  # (L, 3) link origin, world (m)
+    jac: np.ndarray  # (L, 6, nv) [linear; angular], world-aligned, at the link origin
+
+
+class RobotKinematics:
+    """Immutable G1 model (Pinocchio) and the link tables the solver needs.
+
+    Scratch ``pin.Data`` is created by :meth:`new_data` and owned by the caller's state, in the
+    model/data style of Pinocchio.
+    """
+
+    def __init__(self) -> None:
+        self.model = robot.load_pinocchio_model()
+        m = self.model
+        self.nq, self.nv = m.nq, m.nv
+        frame_ids = [m.getFrameId(name, pin.BODY) for name in robot.BODY_NAMES]
+        for name, fid in zip(robot.BODY_NAMES, frame_ids):
+            if not np.allclose(m.frames[fid].placement.homogeneous, np.eye(4)):
+                raise RuntimeError(f"G1 body '{name}' is offset from its joint frame; link Jacobians assume none")
+        #: Pinocchio joint carrying each link (its body frame coincides with the joint frame).
+        self.joint_ids = [int(m.frames[fid].parentJoint) for fid in frame_ids]
+        joint_to_link = {j: k for k, j in enumerate(self.joint_ids)}
+        #: Parent link of each link (−1 for the pelvis).
+        self.parents = np.array([joint_to_link.get(int(m.parents[j]), -1) for j in self.joint_ids])
+        mask = np.zeros((NUM_LINKS, self.nv), dtype=bool)
+        for k, j in enumerate(self.joint_ids):
+            for s in m.supports[j]:
+                if s > 0:
+                    mask[k, m.idx_vs[s]:m.idx_vs[s] + m.nvs[s]] = True
+        #: (L, nv): which velocity coordinates move each link.
+        self.support = mask
+        #: Translation of each link origin in its parent's frame (constant: revolute joints).
+        self.offsets_parent = np.array([m.jointPlacements[j].translation for j in self.joint_ids])
+        self.joint_lower = robot.JOINT_LOWER.copy()
+        self.joint_upper = robot.JOINT_UPPER.copy()
+
+    def new_data(self) -> pin.Data:
+        return self.model.createData()
+
+    def frames(self, data: pin.Data, q: np.ndarray) -> LinkFrames:
+        """Link poses and Jacobians at Pinocchio configuration ``q`` (nq,)."""
+        pin.computeJointJacobians(self.model, data, q)
+        oMi = data.oMi
+        rot = np.array([oMi[j].rotation for j in self.joint_ids])
+        pos = np.array([oMi[j].translation for j in self.joint_ids])
+        jw = data.J  # (6, nv) WORLD: spatial velocity at the world origin
+        lin = jw[None, :3, :] - np.einsum("lij,jn->lin", skew(pos), jw[3:])
+        ang = np.broadcast_to(jw[None, 3:, :], lin.shape)
+        jac = np.concatenate([lin, ang], axis=1) * self.support[:, None, :]
+        return LinkFrames(rot, pos, jac)
+
+    def integrate(self, q: np.ndarray, dv: np.ndarray) -> np.ndarray:
+        return pin.integrate(self.model, q, dv)
+
+    def difference(self, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+        """q1 ⊖ q0 in the tangent space (nv,)."""
+        return pin.difference(self.model, q0, q1)
+
+    @cached_property
+    def self_collision(self) -> SelfCollision:
+        return SelfCollision.build(self)
+
+
+@dataclass(frozen=True)
+class SelfCollision:
+    """Capsule pairs that may collide: not on the same or adjacent links, apart at rest."""
+
+    link: np.ndarray  # (K,) link of each capsule
+    p0: np.ndarray  # (K, 3) segment ends, link frame
+    p1: np.ndarray  # (K, 3)
+    radius: np.ndarray  # (K,)
+    pairs: np.ndarray  # (M, 2) capsule indices
+
+    @classmethod
+    def build(cls, kin: RobotKinematics, rest_clearance_m: float = 0.01) -> SelfCollision:
+        """Keep pairs on non-adjacent links whose capsules are ``rest_clearance_m`` apart both
+        in the zero pose and in the default pose: capsules that overlap at rest model
+        structure (hip covers reaching into the pelvis), not collisions to prevent."""
+        caps = collision_capsules()
+        index = {n: k for k, n in enumerate(robot.BODY_NAMES)}
+        link = np.array([index[c.body] for c in caps])
+        p0 = np.array([c.p0 for c in caps])
+        p1 = np.array([c.p1 for c in caps])
+        radius = np.array([c.radius for c in caps])
+        i, j = np.triu_indices(len(caps), k=1)
+        li, lj = link[i], link[j]
+        adjacent = (li == lj) | (kin.parents[li] == lj) | (kin.parents[lj] == li)
+        keep = ~adjacent
+        data = kin.new_data()
+        for qpos in (np.concatenate([[0, 0, 0.8, 1, 0, 0, 0], np.zeros(robot.NUM_JOINTS)]), robot.default_qpos()):
+            fr = kin.frames(data, robot.qpos_mujoco_to_pinocchio(qpos))
+            probe = cls(link, p0, p1, radius, np.stack([i, j], axis=1))
+            keep &= probe.distances(fr).dist > rest_clearance_m
+        return cls(link, p0, p1, radius, np.stack([i[keep], j[keep]], axis=1))
+
+    def distances(self, fr: LinkFrames, within: float | None = None) -> CapsuleDistances:
+        """Signed distance between the capsules of every pair, with closest points (world).
+
+        With ``within``, only pairs whose segments' bounding spheres come closer than that
+        are measured (the others are provably farther).
+        """
+        a0, a1 = _posed(self, fr, self.p0), _posed(self, fr, self.p1)
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        if within is not None:
+            centre, half = 0.5 * (a0 + a1), 0.5 * np.linalg.norm(a1 - a0, axis=1)
+            bound = np.linalg.norm(centre[i] - centre[j], axis=1) - half[i] - half[j] - self.radius[i] - self.radius[j]
+            i, j = i[bound < within], j[bound < within]
+        ca, cb = segment_closest_points(a0[i], a1[i], a0[j], a1[j])
+        delta = ca - cb
+        length = np.linalg.norm(delta, axis=1)
+        normal = delta / np.maximum(length, 1e-12)[:, None]
+        dist = length - self.radius[i] - self.radius[j]
+        # surface points: the closest points pushed out by each radius along the normal
+        return CapsuleDistances(dist, ca - self.radius[i, None] * normal, cb + self.radius[j, None] * normal, normal,
+                                self.link[i], self.link[j])
+
+
+@dataclass(frozen=True)
+class CapsuleDistances:
+    dist: np.ndarray  # (M,) m, negative when overlapping
+    point_a: np.ndarray  # (M, 3) world, on capsule a
+    point_b: np.ndarray  # (M, 3) world, on capsule b
+    normal: np.ndarray  # (M, 3) unit, from b towards a
+    link_a: np.ndarray  # (M,) link carrying capsule a
+    link_b: np.ndarray  # (M,)
+
+
+def _posed(sc: SelfCollision, fr: LinkFrames, p: np.ndarray) -> np.ndarray:
+    return np.einsum("kij,kj->ki", fr.rot[sc.link], p) + fr.pos[sc.link]
+
+
+def segment_closest_points(p0, p1, q0, q1):
+    """Closest points of segments [p0, p1] and [q0, q1] (batched (M, 3)); degenerate
+    segments (spheres) are handled. Classic clamped two-parameter projection."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a = np.einsum("ij,ij->i", d1, d1)
+    e = np.einsum("ij,ij->i", d2, d2)
+    f = np.einsum("ij,ij->i", d2, r)
+    c = np.einsum("ij,ij->i", d1, r)
+    b = np.einsum("ij,ij->i", d1, d2)
+    denom = a * e - b * b
+    eps = 1e-12
+    s = np.where(denom > eps, np.clip((b * f - c * e) / np.where(denom > eps, denom, 1.0), 0.0, 1.0), 0.0)
+    t = np.where(e > eps, (b * s + f) / np.where(e > eps, e, 1.0), 0.0)
+    # t outside [0, 1]: clamp it and recompute s for the clamped t
+    t_clamped = np.clip(t, 0.0, 1.0)
+    s_clamped = np.where(a > eps, np.clip((b * t_clamped - c) / np.where(a > eps, a, 1.0), 0.0, 1.0), 0.0)
+    s = np.where(t != t_clamped, s_clamped, s)
+    return p0 + s[:, None] * d1, q0 + t_clamped[:, None] * d2

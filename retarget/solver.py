@@ -1,0 +1,1041 @@
+"""Trust-region SQP over the G1 configuration and every free object's pose (paper Sec. III-D).
+
+Per frame t the solver minimises E_int + E_sty,r + E_sty,o + ‖q_t ⊖ q_{t−1}‖² subject to joint
+limits, joint velocity limits, object displacement boxes, non-penetration of every probe–channel
+pair and capsule self-collision (eq. m-program, m-qp). Each SQP iterate linearises everything
+(Gauss–Newton Hessian, analytic Jacobians) into a dense QP solved by ProxQP, whose workspace is
+reused across iterations and frames (``QPWorkspace``; ProxQP's own warm start from its previous
+result is a switch, off because it measured slower). The SQP is warm-started: each frame starts
+from the previous solution moved by the demonstrated displacement (``warm_start``).
+
+Decision variables δ = (δv, δξ_1, …, δξ_O): δv ∈ R³⁵ the Pinocchio tangent of the G1 (base
+twist in the base frame, then joints), δξ_o = (δτ, δθ) ∈ R⁶ per free object (retraction
+τ ← τ + δτ, R ← exp(δθ)R). Every residual/constraint row is a pair of 6-vectors φ on the two
+bodies it involves (``retarget.residuals.Rows``); with one (6, n) Jacobian per body the QP is
+assembled per run of rows sharing their bodies: H += Jᵀ(Σ w φφᵀ)J, so its cost grows with the
+number of (link, channel) pairs, not with the number of probes.
+
+Hot-path economy: links are culled per channel by bounding spheres before any probe is posed,
+probes are posed with one matrix product per link, the QP gets only the constraint rows that
+can bind (per link and channel, the extreme points of the rows closer than a margin), and
+every QP solution is checked against all pairs in the band, adding the violated rows.
+
+The immutable :class:`Problem` (probes, channels, targets) is built by ``retarget.problem``;
+the mutable :class:`SolverState` holds the iterate, the previous frame and the QP workspace.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+from proxsuite import proxqp
+from threadpoolctl import threadpool_limits
+
+from otr_gym import robot
+from otr_gym.rotations import so3_exp, so3_log
+from retarget.geometry import Channel, ProximityQuery
+from retarget.kinematics import NUM_LINKS, LinkFrames, RobotKinematics
+from retarget.margins import ErrorMargin
+from retarget.probes import ProbeSet
+from retarget.residuals import (
+    FIXED,
+    InteractionConfig,
+    PairSet,
+    Rows,
+    Triples,
+    cross,
+    distance_rows,
+    interaction_rows,
+    to_channel_frame,
+    twist_factors,
+)
+from retarget.style import StyleConfig, StyleTargets, object_style_rows, robot_style_rows
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """SQP budget, trust region and constraint settings (eq. m-qp; METHOD.md "Solver")."""
+
+    #: Iterations on the cold-started first frame and on warm-started frames (Sec. III-D).
+    first_frame_iterations: int = 50
+    iterations: int = 6
+    #: Stop when ‖δ‖∞ falls below this (Sec. III-D).
+    step_tolerance: float = 1e-4
+    #: Per-DoF trust region: 5 cm on translations, 0.10 rad on rotations and joints (eq. m-qp-tr).
+    trust_linear_m: float = 0.05
+    trust_angular_rad: float = 0.10
+    #: ε_col: non-penetration d + gᵀδ ≥ −ε_col (eq. m-qp-col).
+    penetration_tolerance_m: float = 3e-4
+    #: Our choice: pairs closer than this seed the QP's constraint rows; every other pair of the
+    #: band is checked against each QP solution and added if its linearisation is violated.
+    constraint_margin_m: float = 0.02
+    #: Our choice: pairs closer than this are checked against each QP solution (farther ones
+    #: would need one step to close more than 5 cm; the end-of-frame pass checks all pairs).
+    check_margin_m: float = 0.05
+    #: Our choice: if a frame's budget ends with a violation beyond ε_col, up to this many
+    #: restoration steps (smallest move the linearised constraints accept) follow, the k-th
+    #: within the trust region × ``feasibility_trust_scale``^k.
+    feasibility_iterations: int = 10
+    feasibility_trust_scale: float = 0.5
+    #: Trust-region update (our choice; the paper fixes the boxes): a rejected step shrinks
+    #: the per-DoF boxes to this fraction of its own extent, an accepted one that met the model
+    #: doubles them back (never above 5 cm / 0.10 rad).
+    trust_shrink: float = 0.25
+    #: Our choice: a frame also stops when the model predicts less than this relative decrease.
+    model_tolerance: float = 1e-5
+    #: L1 penalty (per m of violation beyond ε_col, summed over pairs) in the merit function.
+    violation_penalty: float = 100.0
+    #: b_env (our choice): per-frame deviation of an object's displacement from the demonstrated
+    #: displacement, (m, rad). 2 cm and 0.05 rad per frame at 50 fps (1 m/s, 2.5 rad/s of
+    #: velocity change): free enough to re-time a lift, too tight for a resting box to jump.
+    object_step_box: tuple[float, float] = (0.02, 0.05)
+    #: b_cor (our choice): deviation from the demonstrated pose, (m, rad). The paper's boxes
+    #: drift 3–27 cm; 0.35 m / 0.6 rad bounds that with margin.
+    object_deviation_box: tuple[float, float] = (0.35, 0.6)
+    #: Our choice: an object closer than this to a robot link is "held" and the warm start of
+    #: the next frame moves it rigidly with the robot (``warm_start``).
+    hold_distance_m: float = 0.01
+    #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
+    previous_frame_weight: float = 1.0
+    #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).
+    damping: float = 1e-6
+    #: ProxQP absolute tolerance; steps are converged at 1e-4, so 1e-7 is ample.
+    qp_eps_abs: float = 1e-7
+    #: Warm-start ProxQP from its previous result (same workspace, updated in place). Off by
+    #: default, measured: replaying 424 QPs of the OMOMO box carry, the previous result made
+    #: ProxQP slower (3.76 vs 1.04 ms per solve; median 31 vs 16 iterations, worst 680 vs 42):
+    #: the constraint rows change between iterates, so the previous duals point the wrong way.
+    #: The workspace itself is still reused (update, no re-allocation) when sizes repeat.
+    qp_warm_start: bool = False
+
+
+@dataclass(frozen=True)
+class ChannelTrack:
+    """A channel of the scene and its pose: fixed (ground, furniture, pinned objects) or free."""
+
+    name: str
+    channel: Channel
+    body: int  # FIXED or the solver body index of a free object (NUM_LINKS + i)
+    pos_w: np.ndarray  # (T, 3) pose when fixed; demonstrated pose when free
+    rot_w: np.ndarray  # (T, 3, 3)
+    lower: np.ndarray  # (3,) channel-frame bounds of the surface (−inf for the ground)
+    upper: np.ndarray  # (3,)
+    guards: np.ndarray  # (G, 3) channel frame: hull vertices and edge points (none for the ground)
+    margin: ErrorMargin | None  # grid − exact distance bound, subtracted in non-penetration rows
+
+    @property
+    def is_ground(self) -> bool:
+        return bool(self.channel.is_ground)
+
+
+@dataclass(frozen=True)
+class FreeObject:
+    """A manipulated object: a decision variable, a channel for the robot, and a probe carrier."""
+
+    name: str
+    channel: int  # index of its ChannelTrack
+    probes: np.ndarray  # (P_o, 3) object frame
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Everything precomputed for one demonstration (immutable)."""
+
+    fps: float
+    kin: RobotKinematics
+    robot: ProbeSet  # area samples (cost and constraints), link frames
+    guards: ProbeSet  # hull vertices (constraints against the ground), link frames
+    vertex_guards: ProbeSet  # mesh vertices + hull vertices (constraints against objects), link frames
+    link_center: np.ndarray  # (L, 3) link frame: bounding sphere of probes and guards
+    link_radius: np.ndarray  # (L,)
+    guard_anchor: np.ndarray  # (G,) nearest area probe (same link) of each hull guard
+    guard_anchor_d: np.ndarray  # (G,) m, their separation
+    vertex_anchor: np.ndarray  # (V,) the same for the vertex guards
+    vertex_anchor_d: np.ndarray  # (V,)
+    sampling_gap: np.ndarray  # (L,) m: largest vertex-to-nearest-probe distance of each link
+    link_grids: tuple  # per link: VoxelGrid of its signed distance (link frame), or None without a mesh
+    demo_points: ProbeSet  # src(p) of each robot probe, on its human part (part frame)
+    part_pos_w: np.ndarray  # (T, 22, 3) demonstration part positions (world)
+    part_rot_w: np.ndarray  # (T, 22, 3, 3)
+    channels: tuple[ChannelTrack, ...]
+    objects: tuple[FreeObject, ...]
+    style: StyleTargets
+    q_init: np.ndarray  # (nq,) Pinocchio configuration for the cold start
+    interaction: InteractionConfig
+    style_cfg: StyleConfig
+    solver: SolverConfig
+    band_m: float  # d̄
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.part_pos_w.shape[0])
+
+    @property
+    def num_variables(self) -> int:
+        return self.kin.nv + 6 * len(self.objects)
+
+
+# ------------------------------------------------------------------ per-frame targets
+
+
+@dataclass(frozen=True)
+class FrameTargets:
+    """Demonstrated quantities of frame t, computed once before its SQP iterations."""
+
+    t: int
+    robot: tuple[Triples, ...]  # per channel, for every robot probe (d̂ = d̄ when far)
+    robot_active: tuple[np.ndarray, ...]  # per channel (P,) bool: d̂ < d̄
+    robot_links: tuple[np.ndarray, ...]  # per channel (L,) bool: links with an active probe
+    objects: tuple[tuple[Triples | None, ...], ...]  # per free object, per channel (None: own channel)
+    objects_active: tuple[tuple[np.ndarray | None, ...], ...]
+    obj_pos: np.ndarray  # (O, 3) demonstrated object poses
+    obj_rot: np.ndarray  # (O, 3, 3)
+
+
+def _near(track: ChannelTrack, x_c: np.ndarray, reach: float) -> np.ndarray:
+    """Points (channel frame) inside the channel's bounds grown by ``reach``."""
+    if track.is_ground:
+        return x_c[:, 2] < reach
+    return np.all((x_c > track.lower - reach) & (x_c < track.upper + reach), axis=1)
+
+
+def _far_triples(n: int, band: float) -> Triples:
+    return Triples(np.full(n, band), np.zeros((n, 3)), np.zeros((n, 3)))
+
+
+def _demo_triples(track: ChannelTrack, x_w: np.ndarray, rot: np.ndarray, pos: np.ndarray,
+                  band: float) -> tuple[Triples, np.ndarray]:
+    """Triples of demonstrated points against a channel; only points near it are queried."""
+    x_c = to_channel_frame(x_w, rot, pos)
+    near = np.flatnonzero(_near(track, x_c, band))
+    out = _far_triples(len(x_w), band)
+    if len(near):
+        # once per frame: the exact witness where the grid's blend is unreliable (geometry doc)
+        q = track.channel.query(x_c[near], exact_witness=True)
+        out.d[near], out.w[near], out.n[near] = q.d, q.w, q.n
+    return out, out.d < band
+
+
+def frame_targets(problem: Problem, t: int) -> FrameTargets:
+    """Demonstrated triples of robot probes (through src(p)) and object probes at frame t."""
+    band = problem.band_m
+    human_w = problem.demo_points.posed(problem.part_rot_w[t], problem.part_pos_w[t])
+    robot_t, robot_a, robot_l = [], [], []
+    for track in problem.channels:
+        tri, active = _demo_triples(track, human_w, track.rot_w[t], track.pos_w[t], band)
+        robot_t.append(tri)
+        robot_a.append(active)
+        robot_l.append(np.bincount(problem.robot.body[active], minlength=NUM_LINKS) > 0)
+    obj_t, obj_a = [], []
+    for obj in problem.objects:
+        own = problem.channels[obj.channel]
+        x_w = obj.probes @ own.rot_w[t].T + own.pos_w[t]
+        per_t, per_a = [], []
+        for c, track in enumerate(problem.channels):
+            if c == obj.channel:
+                per_t.append(None)
+                per_a.append(None)
+                continue
+            tri, active = _demo_triples(track, x_w, track.rot_w[t], track.pos_w[t], band)
+            per_t.append(tri)
+            per_a.append(active)
+        obj_t.append(tuple(per_t))
+        obj_a.append(tuple(per_a))
+    obj_pos = np.array([problem.channels[o.channel].pos_w[t] for o in problem.objects]).reshape(-1, 3)
+    obj_rot = np.array([problem.channels[o.channel].rot_w[t] for o in problem.objects]).reshape(-1, 3, 3)
+    return FrameTargets(t, tuple(robot_t), tuple(robot_a), tuple(robot_l), tuple(obj_t), tuple(obj_a),
+                        obj_pos, obj_rot)
+
+
+# ------------------------------------------------------------------ state
+
+
+class QPWorkspace:
+    """ProxQP dense problems kept alive per (n, padded n_in): updated, not re-initialised, when
+    the sizes repeat, so their buffers (and, with ``warm_start``, their last primal/dual
+    solution) carry over between SQP iterations and frames. Constraint rows are padded with inactive rows to a
+    multiple of ``pad`` so that sizes repeat.
+
+    If ProxQP does not converge (linearised constraints in conflict within the trust region),
+    the step is re-solved asking penetrating rows only not to get worse, then without
+    constraint rows, so the SQP always moves; the trust-region test then judges the step.
+    """
+
+    def __init__(self, eps_abs: float, warm_start: bool = False, pad: int = 16) -> None:
+        self.eps_abs = eps_abs
+        self.warm_start = warm_start
+        self.pad = pad
+        self._qps: dict[tuple[int, int], proxqp.dense.QP] = {}
+        self.solves = 0
+        self.failures = 0
+
+    def solve(self, H, g, C, lower, box_lo, box_hi) -> np.ndarray:
+        x, ok = self._solve(H, g, C, lower, box_lo, box_hi)
+        if not ok:
+            self.failures += 1
+            x, ok = self._solve(H, g, C, np.minimum(lower, 0.0), box_lo, box_hi)
+        if not ok:
+            x, _ = self._solve(H, g, C[:0], lower[:0], box_lo, box_hi)
+        return x
+
+    def _solve(self, H, g, C, lower, box_lo, box_hi) -> tuple[np.ndarray, bool]:
+        self.solves += 1
+        n, m = H.shape[0], C.shape[0]
+        m_pad = max(self.pad, -(-m // self.pad) * self.pad)
+        upper = np.full(m_pad, 1e20)
+        if m_pad != m:
+            C = np.vstack([C, np.zeros((m_pad - m, n))])
+            lower = np.concatenate([lower, np.full(m_pad - m, -1e20)])
+        key = (n, m_pad)
+        qp = self._qps.get(key)
+        if qp is None:
+            # measured on the box carry: the primal-dual factorisation is 1.5× faster at these sizes
+            qp = proxqp.dense.QP(n, 0, m_pad, True, proxqp.dense.HessianType.Dense,
+                                 proxqp.dense.DenseBackend.PrimalDualLDLT)
+            qp.settings.eps_abs = self.eps_abs
+            qp.settings.eps_rel = 0.0
+            qp.settings.max_iter = 1000
+            qp.settings.initial_guess = (proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT if self.warm_start
+                                         else proxqp.InitialGuess.NO_INITIAL_GUESS)
+            qp.init(H, g, None, None, C, lower, upper, box_lo, box_hi)
+            self._qps[key] = qp
+        else:
+            qp.update(H, g, None, None, C, lower, upper, box_lo, box_hi, update_preconditioner=True)
+        qp.solve()
+        ok = qp.results.info.status == proxqp.QPSolverOutput.PROXQP_SOLVED
+        return qp.results.x.copy(), ok
+
+
+@dataclass
+class SolverState:
+    """The mutable part: the iterate, the previous frame's solution and the QP workspace."""
+
+    data: pin.Data
+    q: np.ndarray  # (nq,) Pinocchio
+    obj_pos: np.ndarray  # (O, 3)
+    obj_rot: np.ndarray  # (O, 3, 3)
+    qp: QPWorkspace
+    prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (q, obj_pos, obj_rot) of t − 1
+    prev_demo: tuple[np.ndarray, np.ndarray] | None = None  # demonstrated object poses at t − 1
+
+
+@dataclass
+class FrameStats:
+    iterations: int = 0  # QP steps tried
+    rejected: int = 0  # of which undone by the trust-region test
+    qp_rows: list[int] = field(default_factory=list)
+    active_pairs: int = 0
+    min_distance_m: float = np.inf  # smallest probe/guard distance to any collidable channel
+    min_self_distance_m: float = np.inf
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class _Timer:
+    """Accumulates wall time per section into a dict (the benchmark's profile)."""
+
+    def __init__(self, stats: dict[str, float]) -> None:
+        self.stats = stats
+        self.t = time.perf_counter()
+
+    def lap(self, key: str) -> None:
+        now = time.perf_counter()
+        self.stats[key] = self.stats.get(key, 0.0) + now - self.t
+        self.t = now
+
+
+# ------------------------------------------------------------------ linearisation
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    cost: Rows
+    constraints: Rows  # every surface pair in the band, then the close capsule pairs
+    initial: np.ndarray  # indices of ``constraints`` put in the first QP
+    frames: LinkFrames
+    active_pairs: int
+    min_distance: float
+    min_self_distance: float
+    counts: np.ndarray  # (L + O,) active probes per link and object at this iterate (N_ℓ)
+
+
+def _channel_pose(state: SolverState, track: ChannelTrack, t: int) -> tuple[np.ndarray, np.ndarray]:
+    if track.body == FIXED:
+        return track.rot_w[t], track.pos_w[t]
+    i = track.body - NUM_LINKS
+    return state.obj_rot[i], state.obj_pos[i]
+
+
+def _candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray, rot_c: np.ndarray,
+                     pos_c: np.ndarray) -> np.ndarray:
+    """(L,) links whose bounding sphere comes within the band of the channel's bounds."""
+    if track.is_ground:
+        gap = centre_w[:, 2]
+    else:
+        c = to_channel_frame(centre_w, rot_c, pos_c)
+        gap = np.linalg.norm(np.maximum(0.0, np.maximum(track.lower - c, c - track.upper)), axis=1)
+    return gap - problem.link_radius < problem.band_m
+
+
+def _take(q: ProximityQuery, mask: np.ndarray) -> ProximityQuery:
+    return ProximityQuery(d=q.d[mask], w=q.w[mask], n=q.n[mask], grad_d=q.grad_d[mask], dw_dx=q.dw_dx[mask],
+                          in_band=q.in_band[mask])
+
+
+def _rows_take(rows: Rows, mask: np.ndarray) -> Rows:
+    return Rows(rows.value[mask], rows.weight[mask], rows.phi[mask], rows.body_a[mask], rows.body_b[mask])
+
+
+#: Rows are grouped by the nearest of these 6 directions to their distance gradient; each group
+#: keeps its extreme points under tilts in 8 directions perpendicular to the group's gradient.
+_BINS = np.concatenate([np.eye(3), -np.eye(3)])
+_ANGLES = np.arange(8) * (np.pi / 4)
+
+
+def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad: float = 0.2) -> np.ndarray:
+    """Rows to put in the first QP: among those closer than ``margin``, per group (body,
+    channel, binned gradient a), the rows that are smallest after a small rotation ω of the
+    body perpendicular to a (|ω| = ``tilt_rad``, 8 directions, and ω = 0).
+
+    A row reads d_p + a·v + ω·((x_p − o) × a). Over a group a is nearly constant, so the row
+    that binds first for a step (v, ω) is the minimiser of d_p + ω·φ_p[3:6]: an extreme point
+    of the group (for a plane, a vertex of the convex hull); ω along a does not change it. The
+    others are implied to first order; ``qp_step`` checks every candidate row after each QP and
+    adds any violated one, so this choice affects speed, never feasibility.
+    """
+    close = np.flatnonzero(rows.value < margin)
+    if len(close) == 0:
+        return close
+    a = rows.phi[close, :3]
+    key = (rows.body_a[close] * 64 + channel[close]) * 32 + np.argmax(a @ _BINS.T, axis=1)
+    order = np.argsort(key, kind="stable")
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(key[order]) != 0]))
+    counts = np.diff(np.concatenate([starts, [len(close)]]))
+    mean_a = np.add.reduceat(a[order], starts, axis=0)
+    mean_a /= np.maximum(np.linalg.norm(mean_a, axis=1, keepdims=True), 1e-12)
+    t1 = cross(mean_a, np.eye(3)[np.argmin(np.abs(mean_a), axis=1)])
+    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+    t2 = cross(mean_a, t1)
+    tilts = (np.cos(_ANGLES)[None, :, None] * t1[:, None] + np.sin(_ANGLES)[None, :, None] * t2[:, None])  # (G, 8, 3)
+    moment = rows.phi[close[order], 3:6]
+    scores = rows.value[close[order], None] + tilt_rad * np.einsum("kj,kdj->kd", moment,
+                                                                   np.repeat(tilts, counts, axis=0))
+    scores = np.concatenate([rows.value[close[order], None], scores], axis=1)  # (k, 9)
+    best = np.minimum.reduceat(scores, starts, axis=0)
+    extreme = (scores <= np.repeat(best, counts, axis=0)).any(axis=1)
+    return np.sort(close[order[extreme]])
+
+
+def _distance_block(problem: Problem, track: ChannelTrack, rot_c, pos_c, x_w, x_c, body, origin,
+                    query: ProximityQuery) -> Rows:
+    """Non-penetration rows of points against a channel: the grid distance minus the grid's
+    measured error bound there (``retarget.margins``), so that the exact surface is respected."""
+    ps = PairSet(x_w, x_c, origin, body, track.body, rot_c, pos_c, query, _far_triples(len(x_w), problem.band_m),
+                 np.ones(len(x_w)))
+    rows = distance_rows(ps)
+    if track.margin is not None and len(rows):
+        rows = Rows(rows.value - track.margin.at(x_c), rows.weight, rows.phi, rows.body_a, rows.body_b)
+    return rows
+
+
+def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timings: dict[str, float],
+              with_cost: bool = True, counts: np.ndarray | None = None) -> Linearisation:
+    """All rows of the QP at the current iterate (cost rows only when ``with_cost``).
+
+    ``counts`` (L + O,) fixes N_ℓ, the active probe count of each link and object, instead of
+    counting at this iterate: ``solve_frame`` counts once per frame, so that E stays a smooth
+    function of the iterate within the frame (a count that jumps by one as a probe crosses d̄
+    rescales the whole link's term, and the trust-region test would read that as model error).
+    """
+    tm = _Timer(timings)
+    band, margin = problem.band_m, problem.solver.constraint_margin_m
+    check = problem.solver.check_margin_m
+    fr = problem.kin.frames(state.data, state.q)
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    tm.lap("kinematics")
+
+    robot_pairs = []
+    con_rows: list[Rows] = []
+    con_channel: list[np.ndarray] = []
+    active_links: list[np.ndarray] = []
+    link_min = np.full((len(problem.channels), NUM_LINKS), np.inf)
+    for c, track in enumerate(problem.channels):
+        rot_c, pos_c = _channel_pose(state, track, targets.t)
+        near_links = _candidate_links(problem, track, centre_w, rot_c, pos_c)
+        # area probes: near links, and links with a probe in contact range in the demonstration
+        links = np.flatnonzero(near_links | (targets.robot_links[c] if with_cost else False))
+        idx, x_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
+        reach_probe = band if with_cost else check
+        # distance of every area probe, or a lower bound (the filter's reach) where not queried
+        probe_d = np.full(len(problem.robot), reach_probe)
+        if len(idx):
+            x_c = to_channel_frame(x_w, rot_c, pos_c)
+            demo_active = targets.robot_active[c][idx] if with_cost else np.zeros(len(idx), bool)
+            sel = np.flatnonzero(_near(track, x_c, reach_probe) | demo_active)
+            q = track.channel.query(x_c[sel])
+            probe_d[idx[sel]] = q.d
+            active = q.in_band | demo_active[sel]
+            body = problem.robot.body[idx[sel]]
+            if with_cost:
+                a = sel[active]
+                robot_pairs.append((c, rot_c, pos_c, idx[a], x_w[a], x_c[a], _take(q, active)))
+                active_links.append(idx[a])
+            # Against the ground the hull vertices (guards) imply every area probe: skip those.
+            if not track.is_ground:
+                ib = q.in_band & (q.d < check)
+                con_rows.append(_distance_block(problem, track, rot_c, pos_c, x_w[sel[ib]], x_c[sel[ib]], body[ib],
+                                                fr.pos[body[ib]], _take(q, ib)))
+                con_channel.append(np.full(int(ib.sum()), c))
+        link_min[c] = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
+        # Guard points: the distance field is 1-Lipschitz, so a guard is at least as far as its
+        # nearest area probe (its anchor) minus their separation; only guards whose bound is
+        # within the margin can be close enough to matter, the rest are provably clear.
+        guards, anchor, anchor_d = ((problem.guards, problem.guard_anchor, problem.guard_anchor_d) if track.is_ground
+                                    else (problem.vertex_guards, problem.vertex_anchor, problem.vertex_anchor_d))
+        gi = np.flatnonzero(near_links[guards.body] & (probe_d[anchor] - anchor_d < margin))
+        if len(gi):
+            gb = guards.body[gi]
+            g_w = np.einsum("kij,kj->ki", fr.rot[gb], guards.points[gi]) + fr.pos[gb]
+            g_c = to_channel_frame(g_w, rot_c, pos_c)
+            gq = track.channel.query(g_c)
+            ib = gq.in_band & (gq.d < check)
+            con_rows.append(_distance_block(problem, track, rot_c, pos_c, g_w[ib], g_c[ib], gb[ib], fr.pos[gb[ib]],
+                                            _take(gq, ib)))
+            con_channel.append(np.full(int(ib.sum()), c))
+    tm.lap("robot_channels")
+
+    cost: list[Rows] = []
+    total_pairs = 0
+    link_counts = np.zeros(NUM_LINKS, np.intp)
+    object_counts: list[int] = []
+    if with_cost:
+        # f_ℓ/N_ℓ: N_ℓ counts the distinct active probes of link ℓ over all channels
+        active_any = np.zeros(len(problem.robot), dtype=bool)
+        for probes in active_links:
+            active_any[probes] = True
+        n_active = link_counts = np.bincount(problem.robot.body[active_any], minlength=NUM_LINKS)
+        if counts is not None:
+            n_active = counts[:NUM_LINKS]
+        norm_link = problem.interaction.link_weight / np.maximum(n_active, 1)
+        for c, rot_c, pos_c, idx, x_w, x_c, q in robot_pairs:
+            track = problem.channels[c]
+            body = problem.robot.body[idx]
+            ps = PairSet(x_w, x_c, fr.pos[body], body, track.body, rot_c, pos_c, q, targets.robot[c].take(idx),
+                         norm_link[body])
+            cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
+            total_pairs += len(idx)
+    tm.lap("robot_rows")
+
+    for i, obj in enumerate(problem.objects):
+        body = NUM_LINKS + i
+        o_w = obj.probes @ state.obj_rot[i].T + state.obj_pos[i]
+        pairs = []
+        for c, track in enumerate(problem.channels):
+            if c == obj.channel:
+                continue
+            rot_c, pos_c = _channel_pose(state, track, targets.t)
+            o_c = to_channel_frame(o_w, rot_c, pos_c)
+            demo_active = targets.objects_active[i][c]
+            sel = np.flatnonzero(_near(track, o_c, band) | (demo_active if with_cost else False))
+            if len(sel) == 0:
+                continue
+            q = track.channel.query(o_c[sel])
+            active = q.in_band | demo_active[sel]
+            pairs.append((c, track, rot_c, pos_c, sel[active], _take(q, active)))
+            ib = q.in_band & (q.d < check)
+            n_ib = int(ib.sum())
+            con_rows.append(_distance_block(problem, track, rot_c, pos_c, o_w[sel[ib]], o_c[sel[ib]],
+                                            np.full(n_ib, body), np.broadcast_to(state.obj_pos[i], (n_ib, 3)),
+                                            _take(q, ib)))
+            con_channel.append(np.full(n_ib, c))
+            # the object's own hull guards against the ground, furniture and other objects
+            own = problem.channels[obj.channel]
+            g_w = own.guards @ state.obj_rot[i].T + state.obj_pos[i]
+            g_c = to_channel_frame(g_w, rot_c, pos_c)
+            gs = np.flatnonzero(_near(track, g_c, check))
+            if len(gs):
+                gq = track.channel.query(g_c[gs])
+                gb = gq.in_band & (gq.d < check)
+                n_gb = int(gb.sum())
+                con_rows.append(_distance_block(problem, track, rot_c, pos_c, g_w[gs[gb]], g_c[gs[gb]],
+                                                np.full(n_gb, body), np.broadcast_to(state.obj_pos[i], (n_gb, 3)),
+                                                _take(gq, gb)))
+                con_channel.append(np.full(n_gb, c))
+        if with_cost:
+            active_any = np.zeros(len(obj.probes), dtype=bool)
+            for pair in pairs:
+                active_any[pair[4]] = True
+            n_obj_active = int(active_any.sum()) if counts is None else int(counts[NUM_LINKS + i])
+            object_counts.append(int(active_any.sum()))
+            for c, track, rot_c, pos_c, sel, q in pairs:
+                ps = PairSet(o_w[sel], to_channel_frame(o_w[sel], rot_c, pos_c),
+                             np.broadcast_to(state.obj_pos[i], (len(sel), 3)), np.full(len(sel), body), track.body,
+                             rot_c, pos_c, q, targets.objects[i][c].take(sel),
+                             np.full(len(sel), problem.interaction.link_weight / max(n_obj_active, 1)))
+                cost.append(interaction_rows(ps, track.channel, problem.interaction.object_weights,
+                                             problem.interaction))
+                total_pairs += len(sel)
+            cost.append(object_style_rows(state.obj_pos[i], state.obj_rot[i], targets.obj_pos[i], targets.obj_rot[i],
+                                          body, problem.style_cfg))
+    tm.lap("object_rows")
+
+    for c, track in enumerate(problem.channels):
+        if track.is_ground or len(track.guards) == 0:
+            continue
+        rot_c, pos_c = _channel_pose(state, track, targets.t)
+        # a link can hold an object's edge only where its own surface, hence an area probe
+        # within the link's sampling gap, comes close to the object
+        links = np.flatnonzero(link_min[c] < problem.sampling_gap + margin)
+        rows = object_guard_rows(problem, fr, links, track, rot_c, pos_c, check)
+        con_rows.append(rows)
+        con_channel.append(np.full(len(rows), len(problem.channels) + c))
+    tm.lap("object_guards")
+
+    surface = Rows.concat(con_rows)
+    min_dist = float(surface.value.min()) if len(surface) else np.inf
+    initial = np.zeros(0, np.intp)
+    if with_cost:
+        initial = initial_constraints(surface, np.concatenate(con_channel).astype(np.intp) if con_channel
+                                      else np.zeros(0, np.intp), margin)
+    tm.lap("constraint_selection")
+
+    capsules = self_collision_rows(problem, fr, margin)
+    min_self = float(capsules.value.min()) if len(capsules) else np.inf
+    initial = np.concatenate([initial, len(surface) + np.arange(len(capsules))])
+    tm.lap("self_collision")
+
+    if with_cost:
+        s = targets.t
+        cost.append(robot_style_rows(fr, problem.style.links, problem.style.pos_w[s], problem.style.rot_w[s],
+                                     problem.style_cfg))
+    tm.lap("style_rows")
+    return Linearisation(Rows.concat(cost), Rows.concat([surface, capsules]), initial, fr, total_pairs,
+                         min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]))
+
+
+def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
+                      rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+    """Distances of an object's guard points (corners, edge points) to every robot link closer
+    than ``reach``, from each link's own distance grid (link frame).
+
+    A box edge pressed into an arm lies between the arm's probes; seen from the arm's distance
+    field it is the deepest point. Rows: body A the object (FIXED when pinned), body B the link.
+    """
+    g_w = track.guards @ rot_c.T + pos_c
+    centre_w = np.einsum("lij,lj->li", fr.rot[links], problem.link_center[links]) + fr.pos[links]
+    gap = np.linalg.norm(g_w[:, None, :] - centre_w[None], axis=2) - problem.link_radius[links]  # (G, l)
+    blocks = []
+    for j, link in enumerate(links):
+        grid = problem.link_grids[link]
+        if grid is None or not (gap[:, j] < reach).any():
+            continue
+        pts = g_w[gap[:, j] < reach]
+        local = (pts - fr.pos[link]) @ fr.rot[link]
+        val, jac, inside = grid.interpolate(local)
+        keep = inside & (val[:, 0] < reach)
+        if not keep.any():
+            continue
+        a_w = jac[keep, 0] @ fr.rot[link].T  # ∇d in the world
+        x = pts[keep]
+        phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
+        blocks.append(Rows(val[keep, 0], np.ones(len(x)), phi, np.full(len(x), track.body), np.full(len(x), link)))
+    return Rows.concat(blocks)
+
+
+def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:
+    """Capsule pairs closer than ``margin``: d + n·(ẋ_a − ẋ_b) rows (n from b to a)."""
+    sc = problem.kin.self_collision.distances(fr, within=margin)
+    close = sc.dist < margin
+    la, lb, n = sc.link_a[close], sc.link_b[close], sc.normal[close]
+    # the distance's rate is n·(ẋ_a − ẋ_b) at the surface points (the radii lie along n)
+    phi = np.concatenate([n, cross(sc.point_a[close] - fr.pos[la], n), -n, -cross(sc.point_b[close] - fr.pos[lb], n)],
+                         axis=1)
+    return Rows(sc.dist[close], np.ones(len(la)), phi, la, lb)
+
+
+# ------------------------------------------------------------------ QP assembly
+
+
+def body_jacobians(problem: Problem, frames: LinkFrames) -> np.ndarray:
+    """(L + O + 1, 6, n): link Jacobians, object selectors, and zeros for FIXED (index −1)."""
+    n = problem.num_variables
+    nv = problem.kin.nv
+    jac = np.zeros((NUM_LINKS + len(problem.objects) + 1, 6, n))
+    jac[:NUM_LINKS, :, :nv] = frames.jac
+    for i in range(len(problem.objects)):
+        jac[NUM_LINKS + i, :, nv + 6 * i:nv + 6 * i + 6] = np.eye(6)
+    return jac
+
+
+def _runs(code: np.ndarray) -> np.ndarray:
+    return np.flatnonzero(np.concatenate([[True], code[1:] != code[:-1]]))
+
+
+def assemble_cost(rows: Rows, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss–Newton H = Σ w JᵀJ and g = Σ w J r, merged per run of rows on the same bodies.
+
+    A run's rows share their bodies, hence their Jacobians: its block is
+    [J_A; J_B]ᵀ (Φᵀ W Φ) [J_A; J_B] (J_B = 0 for a fixed channel). The 12×12 Φᵀ W Φ of each
+    run is one small product, then all runs go through one batched product with their
+    Jacobians: the cost grows with the number of (body, channel) runs, not of probes.
+    """
+    n = jac.shape[2]
+    if len(rows) == 0:
+        return np.zeros((n, n)), np.zeros(n)
+    starts = _runs(rows.body_a * (jac.shape[0] + 1) + rows.body_b)
+    ends = np.append(starts[1:], len(rows))
+    wphi = rows.weight[:, None] * rows.phi
+    m = np.empty((len(starts), 12, 12))
+    v = np.empty((len(starts), 12))
+    for r, (s, e) in enumerate(zip(starts, ends)):
+        m[r] = wphi[s:e].T @ rows.phi[s:e]
+        v[r] = wphi[s:e].T @ rows.value[s:e]
+    j = np.concatenate([jac[rows.body_a[starts]], jac[rows.body_b[starts]]], axis=1).reshape(-1, n)
+    mj = (m @ j.reshape(len(starts), 12, n)).reshape(-1, n)
+    return j.T @ mj, j.T @ v.ravel()
+
+
+def constraint_matrix(rows: Rows, jac: np.ndarray) -> np.ndarray:
+    """(k, n) rows φ_Aᵀ J_A + φ_Bᵀ J_B."""
+    return (np.einsum("kc,kcn->kn", rows.phi[:, :6], jac[rows.body_a])
+            + np.einsum("kc,kcn->kn", rows.phi[:, 6:], jac[rows.body_b]))
+
+
+def _interval(lo: np.ndarray, hi: np.ndarray, trust: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """[lo, hi] ∩ [−trust, trust]; when empty (the iterate violates a bound by more than one
+    step), the step that moves furthest towards [lo, hi]."""
+    a, b = np.maximum(lo, -trust), np.minimum(hi, trust)
+    empty = a > b
+    toward = np.clip(np.where(lo > 0, lo, hi), -trust, trust)
+    return np.where(empty, toward, a), np.where(empty, toward, b)
+
+
+def _trust(problem: Problem) -> np.ndarray:
+    """Full per-DoF trust region (n,): 5 cm on translations, 0.10 rad on rotations (eq. m-qp-tr)."""
+    cfg = problem.solver
+    nv = problem.kin.nv
+    return np.concatenate([np.full(3, cfg.trust_linear_m), np.full(nv - 3, cfg.trust_angular_rad),
+                           np.tile(np.r_[np.full(3, cfg.trust_linear_m), np.full(3, cfg.trust_angular_rad)],
+                                   len(problem.objects))])
+
+
+def step_bounds(problem: Problem, state: SolverState, targets: FrameTargets,
+                trust_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-variable boxes: trust region ∩ joint limits ∩ velocity limits ∩ object boxes."""
+    cfg = problem.solver
+    nv = problem.kin.nv
+    trust = trust_scale * _trust(problem)
+    lo = np.full(problem.num_variables, -np.inf)
+    hi = np.full(problem.num_variables, np.inf)
+    qj = state.q[7:]
+    lo[6:nv] = problem.kin.joint_lower - qj
+    hi[6:nv] = problem.kin.joint_upper - qj
+    if state.prev is not None:
+        reach = robot.VELOCITY_LIMIT / problem.fps
+        qj_prev = state.prev[0][7:]
+        lo[6:nv] = np.maximum(lo[6:nv], qj_prev - reach - qj)
+        hi[6:nv] = np.minimum(hi[6:nv], qj_prev + reach - qj)
+    b_env = np.repeat(np.asarray(cfg.object_step_box), 3)
+    b_cor = np.repeat(np.asarray(cfg.object_deviation_box), 3)
+    for i in range(len(problem.objects)):
+        s = slice(nv + 6 * i, nv + 6 * i + 6)
+        cum = _pose_error(state.obj_pos[i], state.obj_rot[i], targets.obj_pos[i], targets.obj_rot[i])
+        lo[s], hi[s] = -b_cor - cum, b_cor - cum
+        if state.prev is not None and state.prev_demo is not None:
+            # predicted pose: the last solution moved by the demonstrated displacement
+            dp, dr = state.prev_demo
+            pred_pos = state.prev[1][i] + targets.obj_pos[i] - dp[i]
+            pred_rot = targets.obj_rot[i] @ dr[i].T @ state.prev[2][i]
+            acc = _pose_error(state.obj_pos[i], state.obj_rot[i], pred_pos, pred_rot)
+            lo[s] = np.maximum(lo[s], -b_env - acc)
+            hi[s] = np.minimum(hi[s], b_env - acc)
+    return _interval(lo, hi, trust)
+
+
+def _pose_error(pos, rot, pos_ref, rot_ref) -> np.ndarray:
+    """(τ − τ_ref, log(R R_refᵀ)) (6,)."""
+    return np.concatenate([pos - pos_ref, so3_log(rot @ rot_ref.T)])
+
+
+# ------------------------------------------------------------------ SQP
+
+
+@dataclass
+class _QPModel:
+    """The Gauss–Newton model of one accepted iterate, reused when a trial step is rejected."""
+
+    lin: Linearisation
+    jac: np.ndarray
+    H: np.ndarray
+    g: np.ndarray
+    energy: float  # E at the iterate
+    penalty: float  # L1 penalty of its violations beyond ε_col
+    chosen: np.ndarray  # constraint rows in the QP
+
+    @property
+    def merit(self) -> float:
+        return self.energy + self.penalty
+
+
+def _merit(problem: Problem, state: SolverState, lin: Linearisation) -> tuple[float, float]:
+    """(E = Σ w r² + ‖q ⊖ q_{t−1}‖², L1 penalty on the violations beyond ε_col)."""
+    cfg = problem.solver
+    energy = float(np.dot(lin.cost.weight, lin.cost.value ** 2))
+    if state.prev is not None:
+        e = problem.kin.difference(state.prev[0], state.q)
+        energy += cfg.previous_frame_weight * float(e @ e)
+    excess = np.maximum(0.0, -cfg.penetration_tolerance_m - lin.constraints.value)
+    return energy, cfg.violation_penalty * float(excess.sum())
+
+
+def _model(problem: Problem, state: SolverState, lin: Linearisation, timings: dict[str, float]) -> _QPModel:
+    tm = _Timer(timings)
+    cfg = problem.solver
+    jac = body_jacobians(problem, lin.frames)
+    H, g = assemble_cost(lin.cost, jac)
+    nv = problem.kin.nv
+    if state.prev is not None:
+        e = problem.kin.difference(state.prev[0], state.q)  # q ⊖ q_{t−1}
+        H[:nv, :nv] += cfg.previous_frame_weight * np.eye(nv)
+        g[:nv] += cfg.previous_frame_weight * e
+    H[np.diag_indices_from(H)] += cfg.damping
+    chosen = np.zeros(len(lin.constraints), dtype=bool)
+    chosen[lin.initial] = True
+    energy, penalty = _merit(problem, state, lin)
+    tm.lap("qp_assembly")
+    return _QPModel(lin, jac, H, g, energy, penalty, chosen)
+
+
+def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: _QPModel, trust_scale: float,
+            stats: FrameStats) -> np.ndarray:
+    """The QP step of eq. m-qp at the model's iterate, trust region × ``trust_scale``.
+
+    Constraint rows start from ``model.chosen``; after each solve every candidate row is
+    predicted through the bodies' twists and the violated ones are added (at most 3 times).
+    """
+    cfg = problem.solver
+    eps = cfg.penetration_tolerance_m
+    tm = _Timer(stats.timings)
+    box_lo, box_hi = step_bounds(problem, state, targets, trust_scale)
+    rows, chosen, jac = model.lin.constraints, model.chosen, model.jac
+    for _ in range(4):
+        sub = _rows_take(rows, chosen)
+        # Rows aim at d ≥ 0 (ε_col is the slack for linearisation error); a penetrating pair
+        # asks to get out by at most one step, so the QP stays feasible.
+        lower = np.minimum(-sub.value, trust_scale * cfg.trust_linear_m)
+        C = constraint_matrix(sub, jac)
+        tm.lap("qp_assembly")
+        delta = state.qp.solve(model.H, model.g, C, lower, box_lo, box_hi)
+        tm.lap("qp_solve")
+        twist = jac @ delta  # (bodies, 6)
+        predicted = (rows.value + np.einsum("kc,kc->k", rows.phi[:, :6], twist[rows.body_a])
+                     + np.einsum("kc,kc->k", rows.phi[:, 6:], twist[rows.body_b]))
+        violated = (predicted < -eps) & ~chosen
+        tm.lap("qp_assembly")
+        if not violated.any():
+            break
+        chosen |= violated
+    stats.qp_rows.append(int(chosen.sum()))
+    return delta
+
+
+def retract(problem: Problem, state: SolverState, delta: np.ndarray) -> None:
+    """q ← q ⊕ δv; τ ← τ + δτ, R ← exp(δθ) R for every free object."""
+    nv = problem.kin.nv
+    state.q = problem.kin.integrate(state.q, delta[:nv])
+    for i in range(len(problem.objects)):
+        d = delta[nv + 6 * i:nv + 6 * i + 6]
+        state.obj_pos[i] = state.obj_pos[i] + d[:3]
+        state.obj_rot[i] = so3_exp(d[3:]) @ state.obj_rot[i]
+
+
+def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
+    """Trust-region SQP of frame t from the state's current iterate (warm start).
+
+    Each iteration solves the QP, evaluates the merit (E plus an L1 penalty on violations
+    beyond ε_col) at the trial point, and accepts the step if the merit decreases by at least
+    a tenth of the model's prediction; otherwise the step is undone and the trust region
+    shrinks (×``trust_shrink``), after good steps it grows back. The proximity residuals are
+    not smooth everywhere (witnesses jump across box edges), so without this test the
+    Gauss–Newton steps can wander at the full trust radius instead of converging. The budget
+    (50 iterations on the first frame, 6 after) counts trial steps; if the accepted point still
+    violates ε_col, restoration steps follow (see ``SolverConfig.feasibility_iterations``).
+    """
+    stats = FrameStats()
+    tm = _Timer(stats.timings)
+    targets = frame_targets(problem, t)
+    tm.lap("demo_triples")
+    cfg = problem.solver
+    eps = cfg.penetration_tolerance_m
+    budget = cfg.first_frame_iterations if state.prev is None else cfg.iterations
+    lin = linearise(problem, state, targets, stats.timings)
+    counts = lin.counts
+    model = _model(problem, state, lin, stats.timings)
+    scale = 1.0
+    for _ in range(budget):
+        delta = qp_step(problem, state, targets, model, scale, stats)
+        stats.iterations += 1
+        step = float(np.abs(delta).max())
+        # predicted merit decrease: the model's decrease of E, and the violations the QP removes
+        predicted = -(2.0 * model.g @ delta + delta @ model.H @ delta) + model.penalty
+        if step < cfg.step_tolerance or predicted < cfg.model_tolerance * model.merit:
+            break
+        saved = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
+        retract(problem, state, delta)
+        trial = linearise(problem, state, targets, stats.timings, counts=counts)
+        trial_model = _model(problem, state, trial, stats.timings)
+        gain = model.merit - trial_model.merit
+        if gain > 0.1 * max(predicted, 0.0) and gain > 0.0:
+            model = trial_model
+            if gain > 0.75 * predicted:
+                scale = min(1.0, 2.0 * scale)
+        else:
+            state.q, state.obj_pos, state.obj_rot = saved
+            # shrink around the rejected step (which may sit well inside the region)
+            scale = cfg.trust_shrink * float(np.max(np.abs(delta) / _trust(problem)))
+            stats.rejected += 1
+    lin = model.lin
+    # Feasibility restoration: the smallest move that the linearised constraints accept, with a
+    # trust region shrinking each time, until every pair is within ε_col (linearisation error
+    # is second order in the step, so small steps converge).
+    for k in range(cfg.feasibility_iterations):
+        if lin.min_distance >= -eps and lin.min_self_distance >= -eps:
+            break
+        jac = body_jacobians(problem, lin.frames)
+        n = problem.num_variables
+        chosen = np.zeros(len(lin.constraints), dtype=bool)
+        chosen[lin.initial] = True
+        chosen |= lin.constraints.value < eps
+        restore = _QPModel(lin, jac, np.eye(n), np.zeros(n), 0.0, 0.0, chosen)
+        delta = qp_step(problem, state, targets, restore, cfg.feasibility_trust_scale ** k, stats)
+        stats.iterations += 1
+        retract(problem, state, delta)
+        lin = linearise(problem, state, targets, stats.timings, counts=counts)
+    stats.active_pairs = lin.active_pairs
+    stats.min_distance_m = lin.min_distance
+    stats.min_self_distance_m = lin.min_self_distance
+    state.prev = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
+    state.prev_demo = (targets.obj_pos.copy(), targets.obj_rot.copy())
+    return stats
+
+
+@dataclass(frozen=True)
+class FrameContacts:
+    """Per-link distance to every channel at the solution (ContactAnnotations rows)."""
+
+    distance: np.ndarray  # (L, C) m, clamped to d̄ when far
+    witness_c: np.ndarray  # (L, C, 3) channel frame
+
+
+def frame_contacts(problem: Problem, state: SolverState, t: int) -> FrameContacts:
+    """Per link and channel: the smallest signed distance over its probes and hull guard points
+    (links whose bounding sphere stays beyond d̄ keep the clamped value d̄)."""
+    fr = problem.kin.frames(state.data, state.q)
+    band = problem.band_m
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    C = len(problem.channels)
+    dist = np.full((NUM_LINKS, C), band)
+    wit = np.zeros((NUM_LINKS, C, 3))
+    for c, track in enumerate(problem.channels):
+        rot_c, pos_c = _channel_pose(state, track, t)
+        links = np.flatnonzero(_candidate_links(problem, track, centre_w, rot_c, pos_c))
+        pidx, p_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
+        gidx, g_w = problem.guards.posed_bodies(links, fr.rot, fr.pos)
+        pts = np.concatenate([p_w, g_w])
+        link = np.concatenate([problem.robot.body[pidx], problem.guards.body[gidx]])
+        x_c = to_channel_frame(pts, rot_c, pos_c)
+        idx = np.flatnonzero(_near(track, x_c, band))
+        if len(idx) == 0:
+            continue
+        q = track.channel.query(x_c[idx])
+        d = np.minimum(q.d, band)
+        order = np.lexsort((d, link[idx]))  # per link, closest first
+        first = order[np.concatenate([[True], link[idx][order][1:] != link[idx][order][:-1]])]
+        dist[link[idx][first], c] = d[first]
+        wit[link[idx][first], c] = q.w[first]
+    return FrameContacts(dist, wit)
+
+
+@dataclass
+class Solution:
+    """The solved sequence: MuJoCo-layout qpos, free-object poses, contacts and statistics."""
+
+    qpos: np.ndarray  # (T, 36) [xyz, wxyz, joints]
+    obj_pos: np.ndarray  # (T, O, 3)
+    obj_rot: np.ndarray  # (T, O, 3, 3)
+    contacts: np.ndarray  # (T, L, C)
+    witness_c: np.ndarray  # (T, L, C, 3)
+    stats: list[FrameStats]
+    qp_failures: int
+
+
+def new_state(problem: Problem) -> SolverState:
+    pos = np.array([problem.channels[o.channel].pos_w[0] for o in problem.objects]).reshape(-1, 3)
+    rot = np.array([problem.channels[o.channel].rot_w[0] for o in problem.objects]).reshape(-1, 3, 3)
+    return SolverState(problem.kin.new_data(), problem.q_init.copy(), pos.copy(), rot.copy(),
+                       QPWorkspace(problem.solver.qp_eps_abs, problem.solver.qp_warm_start))
+
+
+def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -> None:
+    """First iterate of frame t from the solution of t − 1, moved by the demonstration.
+
+    The robot base and every object it holds (``held``, per free object) move together by the
+    demonstrated pelvis's planar displacement (xy translation, yaw about the base): a rigid
+    motion of the robot with its load keeps the previous solution's contacts and clearances,
+    and a planar one keeps the soles on the ground. Objects not held move by their own
+    demonstrated displacement.
+    """
+    pelvis = int(np.flatnonzero(problem.style.links == 0)[0])
+    rot_prev, rot_now = problem.style.rot_w[t - 1, pelvis], problem.style.rot_w[t, pelvis]
+    yaw = np.arctan2(rot_now[1, 0], rot_now[0, 0]) - np.arctan2(rot_prev[1, 0], rot_prev[0, 0])
+    turn = so3_exp(np.array([0.0, 0.0, yaw]))
+    shift = problem.part_pos_w[t, 0] - problem.part_pos_w[t - 1, 0]
+    shift[2] = 0.0
+    base = state.q[:3].copy()
+    state.q[:3] = base + shift
+    base_rot = pin.Quaternion(state.q[6], *state.q[3:6]).toRotationMatrix()
+    state.q[3:7] = pin.Quaternion(turn @ base_rot).coeffs()  # xyzw
+    for i, o in enumerate(problem.objects):
+        if held[i]:
+            state.obj_pos[i] = base + shift + turn @ (state.obj_pos[i] - base)
+            state.obj_rot[i] = turn @ state.obj_rot[i]
+        else:
+            tr = problem.channels[o.channel]
+            state.obj_pos[i] += tr.pos_w[t] - tr.pos_w[t - 1]
+            state.obj_rot[i] = tr.rot_w[t] @ tr.rot_w[t - 1].T @ state.obj_rot[i]
+
+
+def solve_sequence(problem: Problem, progress=None) -> Solution:
+    """Solve every frame in order, each warm-started from the previous solution.
+
+    BLAS and OpenMP run on one thread meanwhile: the products are small, so threads cost more
+    than they save, and the pipeline's workers give the parallelism.
+    """
+    with threadpool_limits(limits=1):
+        return _solve_sequence(problem, progress)
+
+
+def _solve_sequence(problem: Problem, progress) -> Solution:
+    state = new_state(problem)
+    T, n_obj = problem.num_frames, len(problem.objects)
+    qpos = np.empty((T, 7 + robot.NUM_JOINTS))
+    obj_pos, obj_rot = np.empty((T, n_obj, 3)), np.empty((T, n_obj, 3, 3))
+    contacts = np.empty((T, NUM_LINKS, len(problem.channels)))
+    witness = np.empty((T, NUM_LINKS, len(problem.channels), 3))
+    stats = []
+    held = np.zeros(n_obj, dtype=bool)
+    for t in range(T):
+        if t > 0:
+            warm_start(problem, state, t, held)
+        stats.append(solve_frame(problem, state, t))
+        fc = frame_contacts(problem, state, t)
+        held = np.array([fc.distance[:, o.channel].min() < problem.solver.hold_distance_m for o in problem.objects],
+                        dtype=bool)
+        qpos[t] = robot.qpos_pinocchio_to_mujoco(state.q)
+        obj_pos[t], obj_rot[t] = state.obj_pos, state.obj_rot
+        contacts[t], witness[t] = fc.distance, fc.witness_c
+        if progress is not None:
+            progress(t)
+    return Solution(qpos, obj_pos, obj_rot, contacts, witness, stats, state.qp.failures)

@@ -1,0 +1,24 @@
+"""Short procedural demonstrations for the retargeting tests (generated, never downloaded)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import lru_cache
+
+from retarget.demos import Demonstration
+from retarget.synthetic import generate
+
+
+@lru_cache(maxsize=4)
+def _full(kind: str) -> Demonstration:
+    return generate(kind, seed=0, fps=30.0)
+
+
+def clip(kind: str, start: int, stop: int) -> Demonstration:
+    """Frames [start, stop) of the seed-0 synthetic ``kind`` at 30 fps (objects and labels sliced too)."""
+    demo = _full(kind)
+    s = slice(start, stop)
+    objects = [replace(o, pos_w=o.pos_w[s], quat_w=o.quat_w[s]) for o in demo.objects]
+    annotations = {k: v[s] for k, v in demo.annotations.items()}
+    return replace(demo, name=f"{demo.name}[{start}:{stop}]", part_pos_w=demo.part_pos_w[s],
+                   part_quat_w=demo.part_quat_w[s], objects=objects, annotations=annotations)

@@ -1,0 +1,131 @@
+"""``otr retarget``: configuration, batch behaviour (resume, failures, workers), bad inputs, and
+the OMOMO large-box clip end to end."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from clips import clip
+
+from otr_gym.reference import Reference
+from retarget.pipeline import (
+    CONFIG_DIR,
+    ConfigError,
+    RetargetConfig,
+    configure_parser,
+    load_config,
+    main,
+    retarget_demonstration,
+)
+
+EPS_COL = 3e-4
+
+
+def _args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    configure_parser(parser)
+    return parser.parse_args(list(argv))
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("demos")
+    clip("walk", 40, 46).save(folder / "walk_a.npz")
+    clip("walk", 60, 66).save(folder / "walk_b.npz")
+    return folder
+
+
+def test_default_yaml_mirrors_the_dataclass_defaults():
+    assert load_config(CONFIG_DIR / "default.yaml") == RetargetConfig()
+
+
+def test_unknown_config_key_is_named(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("solver:\n  iterationz: 3\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml\.solver': unknown keys \['iterationz'\]"):
+        load_config(bad)
+
+
+def test_folder_is_retargeted_then_skipped_on_the_second_run(tiny, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(_args(str(tiny), "--out", str(out), "--mode", "robot-only")) == 0
+    files = sorted(p.name for p in out.glob("*.npz"))
+    assert files == ["walk_a.npz", "walk_b.npz"]
+    ref = Reference.load(out / "walk_a.npz")
+    assert ref.fps == 50.0 and ref.metadata["mode"] == "robot-only" and ref.metadata["scale"] == 1.0
+    assert ref.metadata["config"]["interaction"]["robot_weights"] == [256.0, 625.0, 2500.0]
+    assert ref.contacts.channel_names == ("ground",) and ref.contacts.distance.shape[1] == 30
+    stamp = (out / "walk_a.npz").stat().st_mtime_ns
+    capsys.readouterr()
+    assert main(_args(str(tiny), "--out", str(out), "--mode", "robot-only")) == 0
+    assert "2 of 2 outputs already exist: skipped" in capsys.readouterr().out
+    assert (out / "walk_a.npz").stat().st_mtime_ns == stamp
+    assert not list(out.glob("*.tmp"))
+
+
+def test_a_failing_clip_is_reported_and_the_batch_goes_on_with_a_nonzero_exit(tiny, tmp_path, capsys):
+    out = tmp_path / "out"
+    missing = tmp_path / "nowhere.pt"
+    unknown = tmp_path / "notes.txt"
+    unknown.write_text("not a demonstration")
+    code = main(_args(str(missing), str(unknown), str(tiny / "walk_a.npz"), "--out", str(out), "--mode", "robot-only"))
+    err = capsys.readouterr().err
+    assert code == 1
+    assert f"{missing}: no such demonstration file" in err
+    assert f"{unknown}: unknown demonstration format '.txt'" in err
+    assert (out / "walk_a.npz").is_file() and not (out / "nowhere.npz").exists()
+
+
+def test_two_workers_give_the_same_references_as_one(tiny, tmp_path):
+    one, two = tmp_path / "one", tmp_path / "two"
+    assert main(_args(str(tiny), "--out", str(one), "--mode", "robot-only")) == 0
+    assert main(_args(str(tiny), "--out", str(two), "--mode", "robot-only", "--workers", "2")) == 0
+    for name in ("walk_a.npz", "walk_b.npz"):  # to 1e-12, see test_the_same_demonstration_gives_the_same_reference
+        np.testing.assert_allclose(Reference.load(one / name).joint_pos, Reference.load(two / name).joint_pos,
+                                   rtol=0, atol=1e-12)
+
+
+def test_scaled_mode_scales_the_human_and_pins_the_object():
+    demo = clip("box_carry", 100, 104)
+    ref = retarget_demonstration(demo, RetargetConfig(mode="scaled"))
+    sc = 1.32 / demo.stature_m
+    assert ref.metadata["scale"] == pytest.approx(sc) and ref.metadata["free_objects"] == []
+    box = next(o for o in ref.objects if o.name == "box")
+    src = next(o for o in demo.objects if o.name == "box")
+    # pinned: the reference's box is the demonstrated track × sc (at 50 fps: first and last frames)
+    np.testing.assert_allclose(box.pos_w[0], src.pos_w[0] * sc, atol=1e-9)
+    np.testing.assert_allclose(box.pos_w[-1], src.pos_w[-1] * sc, atol=1e-9)
+
+
+def test_omomo_clip_without_its_object_mesh_is_named(shared_data, tmp_path):
+    clip_path = tmp_path / "sub3_largebox_003.pt"
+    shutil.copy(shared_data / "omomo" / "sub3_largebox_003.pt", clip_path)
+    code = main(_args(str(clip_path), "--out", str(tmp_path / "out")))
+    assert code == 1
+    wrong = tmp_path / "nothing.obj"
+    code = main(_args(str(clip_path), "--out", str(tmp_path / "out"), "--object", str(wrong)))
+    assert code == 1 and not (tmp_path / "out" / "sub3_largebox_003.npz").exists()
+
+
+@pytest.mark.slow
+def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(shared_data):
+    """OMOMO sub3_largebox_003, box free, native scale (the figures quoted in the report)."""
+    from retarget.demos import load_demonstration
+    from retarget.problem import resample_demonstration
+    from retarget.verify import check_reference
+
+    demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
+    ref = retarget_demonstration(demo, RetargetConfig())
+    checks = check_reference(ref, resample_demonstration(demo, ref.fps))
+    print(dataclasses.asdict(checks), ref.metadata["solver"])
+    assert ref.contacts.distance.min() >= -EPS_COL  # probes, every link and channel
+    assert checks.object_penetration_mesh_m <= EPS_COL  # exact, visual-mesh vertices vs the scanned box
+    assert checks.ground_penetration_mesh_m <= EPS_COL
+    assert checks.joint_limit_excess_rad <= 1e-6 and checks.joint_speed_ratio <= 1.0
+    assert checks.hand_contact_frames > 300 and checks.hand_hold >= 0.95
+    assert checks.object_min_height_m >= -EPS_COL

@@ -1,0 +1,131 @@
+"""The trust-region SQP: its kinematics and QP pieces, and what it guarantees on short clips."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from clips import clip
+
+from otr_gym import robot
+from retarget.kinematics import NUM_LINKS, RobotKinematics, segment_closest_points
+from retarget.pipeline import RetargetConfig, retarget_demonstration
+from retarget.problem import build_problem, resample_demonstration
+from retarget.residuals import FIXED, Rows
+from retarget.solver import _model, assemble_cost, body_jacobians, frame_targets, linearise, new_state, qp_step
+from retarget.verify import check_reference
+
+EPS_COL = 3e-4
+
+
+@pytest.fixture(scope="module")
+def kin() -> RobotKinematics:
+    return RobotKinematics()
+
+
+def test_link_jacobians_equal_pinocchio_local_world_aligned_frame_jacobians(kin):
+    rng = np.random.default_rng(0)
+    q = pin.neutral(kin.model)
+    q[:3] = rng.normal(size=3)
+    q[3:7] = pin.Quaternion(pin.exp3(rng.normal(size=3))).coeffs()
+    q[7:] = rng.uniform(robot.JOINT_LOWER, robot.JOINT_UPPER)
+    data = kin.new_data()
+    fr = kin.frames(data, q)
+    for k, name in enumerate(robot.BODY_NAMES):
+        fid = kin.model.getFrameId(name, pin.BODY)
+        ref = pin.getFrameJacobian(kin.model, data, fid, pin.LOCAL_WORLD_ALIGNED)
+        np.testing.assert_allclose(fr.jac[k], ref, atol=1e-12)
+        np.testing.assert_allclose(fr.pos[k], data.oMf[fid].translation, atol=1e-12)
+
+
+def test_segment_closest_points_match_a_dense_search():
+    rng = np.random.default_rng(1)
+    p0, p1, q0, q1 = (rng.normal(size=(60, 3)) for _ in range(4))
+    p1[:10] = p0[:10]  # spheres
+    a, b = segment_closest_points(p0, p1, q0, q1)
+    s = np.linspace(0.0, 1.0, 201)
+    pa = p0[:, None] + s[None, :, None] * (p1 - p0)[:, None]
+    pb = q0[:, None] + s[None, :, None] * (q1 - q0)[:, None]
+    dense = np.linalg.norm(pa[:, :, None] - pb[:, None], axis=-1).min(axis=(1, 2))
+    assert np.all(np.linalg.norm(a - b, axis=1) <= dense + 1e-9)
+    assert np.all(np.linalg.norm(a - b, axis=1) >= dense - 1e-2)
+
+
+def test_merged_cost_assembly_equals_the_dense_gauss_newton_product():
+    rng = np.random.default_rng(2)
+    n_bodies, n = 4, 17
+    jac = np.concatenate([rng.normal(size=(n_bodies, 6, n)), np.zeros((1, 6, n))])
+    k = 60
+    body_a = np.sort(rng.integers(0, n_bodies, k))
+    body_b = np.where(rng.random(k) < 0.5, FIXED, rng.integers(0, n_bodies, k))
+    rows = Rows(rng.normal(size=k), rng.random(k), rng.normal(size=(k, 12)), body_a, body_b)
+    dense = (np.einsum("kc,kcn->kn", rows.phi[:, :6], jac[body_a])
+             + np.einsum("kc,kcn->kn", rows.phi[:, 6:], jac[body_b]))
+    H, g = assemble_cost(rows, jac)
+    np.testing.assert_allclose(H, dense.T @ (rows.weight[:, None] * dense), atol=1e-9)
+    np.testing.assert_allclose(g, dense.T @ (rows.weight * rows.value), atol=1e-9)
+
+
+def test_qp_step_stays_in_the_trust_region_and_the_joint_limits():
+    demo = resample_demonstration(clip("walk", 30, 36), 50.0)
+    problem = build_problem(demo, "robot-only")
+    state = new_state(problem)
+    state.q[7:] = robot.JOINT_UPPER - 0.01  # next to the upper limits
+    targets = frame_targets(problem, 0)
+    lin = linearise(problem, state, targets, {})
+    from retarget.solver import FrameStats
+
+    delta = qp_step(problem, state, targets, _model(problem, state, lin, {}), 1.0, FrameStats())
+    cfg = problem.solver
+    assert np.all(np.abs(delta[:3]) <= cfg.trust_linear_m + 1e-7)
+    assert np.all(np.abs(delta[3:]) <= cfg.trust_angular_rad + 1e-7)
+    assert np.all(state.q[7:] + delta[6:] <= robot.JOINT_UPPER + 1e-7)
+    assert body_jacobians(problem, lin.frames).shape == (NUM_LINKS + 1, 6, problem.num_variables)
+
+
+@pytest.fixture(scope="module")
+def walk_reference():
+    demo = resample_demonstration(clip("walk", 20, 50), 50.0)
+    return demo, retarget_demonstration(demo, RetargetConfig(mode="robot-only"))
+
+
+def test_robot_only_walk_keeps_stance_feet_on_the_ground_without_penetration(walk_reference):
+    demo, ref = walk_reference
+    ground = ref.contacts.channel_names.index("ground")
+    feet = ref.body_index(robot.FEET)
+    dist = ref.contacts.distance[:, feet, ground]  # (T, 2): lowest probe or hull point of each foot
+    assert dist.min() >= -EPS_COL
+    # the demonstrated stance phases, resampled with the demonstration to the reference's 50 fps
+    t = np.arange(ref.num_frames) / ref.fps
+    stance = np.stack([demo.annotations[f"stance_{p}_Ankle"] for p in "LR"], axis=1)
+    assert stance.shape == (ref.num_frames, 2)
+    assert stance.any(axis=0).all()
+    assert np.abs(dist[stance.astype(bool)]).max() < 0.005, "a stance foot leaves the ground by 5 mm or more"
+    checks = check_reference(ref, demo)
+    assert checks.ground_penetration_mesh_m <= EPS_COL
+    assert checks.joint_limit_excess_rad < 1e-6 and checks.joint_speed_ratio <= 1.0 + 1e-6
+    assert t[-1] == pytest.approx(demo.duration_s)
+
+
+def test_the_same_demonstration_gives_the_same_reference():
+    """Same input, same output: no randomness anywhere (seeded sampling, cached assignments).
+    Equality is to 1e-12, not bitwise: NumPy's SIMD sums depend on buffer alignment, which
+    moves the last bit between runs (observed: 8e-16 after a few frames)."""
+    demo = resample_demonstration(clip("walk", 40, 46), 50.0)
+    a = retarget_demonstration(demo, RetargetConfig(mode="robot-only"))
+    b = retarget_demonstration(demo, RetargetConfig(mode="robot-only"))
+    np.testing.assert_allclose(a.joint_pos, b.joint_pos, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.contacts.distance, b.contacts.distance, rtol=0, atol=1e-12)
+    assert a.metadata["solver"]["iterations_mean"] == b.metadata["solver"]["iterations_mean"]
+
+
+def test_penetration_never_exceeds_0p3mm_on_a_synthetic_box_lift():
+    demo = resample_demonstration(clip("box_carry", 130, 175), 50.0)  # reach, grasp, lift
+    ref = retarget_demonstration(demo, RetargetConfig())
+    assert [o.name for o in ref.objects] == ["box", "table"]
+    assert ref.contacts.distance.min() >= -EPS_COL  # the solver's own probes, every channel
+    checks = check_reference(ref, demo)  # exact distances of the visual-mesh vertices
+    assert checks.object_penetration_mesh_m <= EPS_COL
+    assert checks.ground_penetration_mesh_m <= EPS_COL
+    assert checks.object_min_height_m >= -EPS_COL
+    assert checks.hand_contact_frames > 50 and checks.hand_hold >= 0.85
