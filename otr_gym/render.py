@@ -4,7 +4,8 @@ One renderer for everything we show: a scene of the G1 (optional) plus any numbe
 mesh tracks (``RigidTrack``: mesh in its own frame + world poses per frame), built once as
 MuJoCo mocap bodies and posed frame by frame. References give the G1 and their objects;
 demonstrations give one track per human part and per object (``retarget`` builds those).
-Uses MuJoCo's offscreen renderer (``MUJOCO_GL=egl`` by default; ``osmesa`` also works).
+Uses MuJoCo's offscreen renderer (``MUJOCO_GL=egl`` by default, set by ``otr_gym``;
+``osmesa`` also works).
 """
 
 from __future__ import annotations
@@ -13,15 +14,12 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import mujoco
 import numpy as np
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-
-import mujoco  # noqa: E402
-
-from otr_gym.reference import Reference  # noqa: E402
-from otr_gym.robot import G1_MJCF  # noqa: E402
-from otr_gym.scene import GROUND_XML  # noqa: E402
+from otr_gym.reference import Reference
+from otr_gym.robot import G1_MJCF
+from otr_gym.scene import GROUND_XML
 
 HUMAN_RGBA = (0.85, 0.72, 0.55, 1.0)
 OBJECT_RGBA = (0.8, 0.55, 0.3, 1.0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import imageio.v3 as iio
 import numpy as np
 
@@ -35,10 +37,15 @@ def test_inspect_reports_a_bad_file_and_fails(tmp_path, capsys):
     assert "broken.npz" in capsys.readouterr().out
 
 
-def test_demo_writes_the_demonstration_and_its_picture(tmp_path):
+def test_demo_retargets_pictures_and_scores_the_embedded_walk(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--kind", "walk"]) == 0
     demo = Demonstration.load(tmp_path / "walk_demo.npz")
-    assert demo.num_frames > 60 and demo.fps == 30
+    ref = Reference.load(tmp_path / "walk.npz")
+    assert ref.fps == 50 and abs(ref.duration_s - demo.duration_s) < 0.05
     picture = iio.imread(tmp_path / "walk.png")
-    assert picture.shape[0] >= 300 and picture.shape[1] > 5 * picture.shape[0] // 2
+    assert picture.shape[0] >= 700 and picture.shape[1] > 2 * picture.shape[0]  # two rows of six
     assert picture.std() > 10  # an actual rendering, not a blank canvas
+    record = json.loads((tmp_path / "walk_eval.json").read_text())
+    assert record["metrics"]["ground_jaccard"] > 0.9  # the feet keep the demonstrated floor contacts
+    assert (tmp_path / "walk_contacts.png").stat().st_size > 10_000
+    assert "walk" in capsys.readouterr().out.splitlines()[-1]  # the table's row
