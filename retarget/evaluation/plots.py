@@ -63,11 +63,12 @@ def plot_contact_timeline(record: dict, path: str | Path) -> Path:
         ax.imshow(grid, aspect="auto", interpolation="nearest", cmap=cmap, vmin=0, vmax=3,
                   extent=(0.0, frames / fps, len(grid) - 0.5, -0.5))
         ax.set_yticks(range(len(names)), [_short(n) for n in names], fontsize=7)
-        m = record["metrics"]
-        prefix = "ground" if channel == "ground" else "object"
-        scores = ", ".join(f"{k} {m.get(f'{prefix}_{key}') * 100:.0f}%" for k, key in
-                           (("R", "recall"), ("P", "precision"), ("J", "jaccard"))
-                           if m.get(f"{prefix}_{key}") is not None)
+        # this channel's own sample ratios (the record's object metrics pool every object)
+        h, r = (grid & 1).astype(bool), (grid & 2).astype(bool)
+        both = np.count_nonzero(h & r)
+        ratios = (("R", both, np.count_nonzero(h)), ("P", both, np.count_nonzero(r)),
+                  ("J", both, np.count_nonzero(h | r)))
+        scores = ", ".join(f"{k} {100 * num / den:.0f}%" for k, num, den in ratios if den)
         ax.set_title(f"{channel}" + (f" — {scores}" if scores else " — no interaction"), fontsize=9, loc="left")
         ax.set_xlim(0.0, frames / fps)
     axes[-1, 0].set_xlabel("time (s)")
