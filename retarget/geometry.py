@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Protocol
 
 import igl
+import numba
 import numpy as np
 import potpourri3d as pp3d
 from scipy.spatial import cKDTree
@@ -120,7 +121,8 @@ class ProximityQuery:
 
     d (N,) signed distance (m, negative inside, clamped to band_m out of band);
     w (N, 3) witness (closest surface point); n (N, 3) unit vector witness→probe, equal to
-    sign(d)·outward normal as d → 0 and the outward normal within 1 µm of the surface; grad_d (N, 3) ∂d/∂x, the exact gradient of the trilinear
+    sign(d)·outward normal as d → 0 and the outward normal within 1 µm of the surface (None
+    when the query was asked for no normals); grad_d (N, 3) ∂d/∂x, the exact gradient of the trilinear
     interpolant; dw_dx (N, 3, 3) ∂w/∂x, the exact Jacobian of the interpolated witness
     (I − n nᵀ on faces, smaller at convex edges and corners), or I − n nᵀ of the face where a
     witness was re-projected; in_band (N,) bool: inside the grid and d < band_m. Out of band,
@@ -129,7 +131,7 @@ class ProximityQuery:
 
     d: np.ndarray
     w: np.ndarray
-    n: np.ndarray
+    n: np.ndarray | None
     grad_d: np.ndarray
     dw_dx: np.ndarray
     in_band: np.ndarray
@@ -144,9 +146,16 @@ class Channel(Protocol):
     name: str
     is_ground: bool
 
-    def query(self, x_c: np.ndarray, exact_witness: bool = False) -> ProximityQuery: ...
+    def query(self, x_c: np.ndarray, exact_witness: bool = False, normals: bool = True) -> ProximityQuery: ...
+
+    def distance(self, x_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...
 
     def geodesic(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def geodesic_ratio(self, w: np.ndarray, w_hat: np.ndarray,
+                       hat_weights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def geodesic_weights(self, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None: ...
 
 
 def _check_points(name: str, x: np.ndarray, what: str = "probes") -> np.ndarray:
@@ -175,9 +184,9 @@ class VoxelGrid:
     def __post_init__(self) -> None:
         _, ny, nz = self.shape
         strides = np.array([ny * nz, nz, 1], dtype=np.intp)
-        object.__setattr__(self, "_corner_offsets", _CORNERS @ strides)
         object.__setattr__(self, "_strides", strides)
         object.__setattr__(self, "_upper", np.array(self.shape, np.float64) - 1.0)
+        object.__setattr__(self, "_phi", np.ascontiguousarray(self.values[:, 0]))
 
     @property
     def node_positions(self) -> np.ndarray:
@@ -210,24 +219,101 @@ class VoxelGrid:
         Points outside the grid are evaluated at their projection onto the grid box with a
         zero Jacobian (the caller marks them out of band).
         """
-        i0, f, inside = self._cells(x)
-        # (8, N, 4): one contiguous block per corner (np.take is ~10x faster than fancy indexing here).
-        c = np.take(self.values, (i0 @ self._strides)[None, :] + self._corner_offsets[:, None], axis=0)
-        # Successive lerps along z, y, x; each level's difference is the partial along that axis.
-        fx, fy, fz = f[:, 0, None], f[:, 1, None], f[:, 2, None]
-        dz = c[1::2] - c[0::2]  # (4, N, 4), corners ordered (x, y) = 00, 01, 10, 11
-        cz = c[0::2] + fz * dz
-        dy = cz[1::2] - cz[0::2]  # (2, N, 4), ordered x = 0, 1
-        cyz = cz[0::2] + fy * dy
-        dyz = dz[0::2] + fy * (dz[1::2] - dz[0::2])
-        dx = cyz[1] - cyz[0]
-        val = cyz[0] + fx * dx
-        jac = np.empty((len(x), 4, 3))
-        jac[:, :, 0] = dx
-        jac[:, :, 1] = dy[0] + fx * (dy[1] - dy[0])
-        jac[:, :, 2] = dyz[0] + fx * (dyz[1] - dyz[0])
-        jac *= (1.0 / self.resolution) * inside[:, None, None]
-        return val, jac, inside
+        return _interpolate(x, self.values, self.origin, 1.0 / self.resolution, self._upper, self._strides)
+
+    def interpolate_distance(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Φ alone: :meth:`interpolate`'s first column (N,), its gradient (N, 3) and the
+        inside mask, for a quarter of the memory traffic (constraint points need no witness)."""
+        val, jac, inside = _interpolate(x, self._phi[:, None], self.origin, 1.0 / self.resolution, self._upper,
+                                        self._strides)
+        return val[:, 0], jac[:, 0], inside
+
+
+def _interpolate(x: np.ndarray, values: np.ndarray, origin: np.ndarray, inv_resolution: float, upper: np.ndarray,
+                 strides: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Trilinear interpolation of one grid's node ``values`` (M, C) at points x (N, 3) (grid
+    frame): values (N, C), their Jacobian (N, C, 3) (zero outside the grid) and inside (N,)."""
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    n, ch = len(x), values.shape[1]
+    val, jac, inside = np.empty((n, ch)), np.empty((n, ch, 3)), np.empty(n, dtype=np.bool_)
+    _trilinear_kernel(x, np.zeros(n, np.intp), values, origin[None], np.array([inv_resolution]), upper[None],
+                      strides[None], np.zeros(1, np.intp), val, jac, inside)
+    return val, jac, inside
+
+
+@numba.njit(cache=True)
+def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, offset, val, jac, inside):
+    """Trilinear interpolant of node values (M, C) at points x (N, 3), point i in the frame of
+    grid g = grid[i] (origin[g], 1/resolution, upper[g] = shape − 1, node strides[g], first row
+    offset[g] in ``values``); writes val (N, C), jac (N, C, 3) (∂/∂x, zero outside the grid)
+    and inside (N,). Points outside use the cell of their projection onto the grid box.
+
+    Per channel, successive lerps along z, y, x; each level's difference is the partial along
+    that axis (corner rows: z pairs adjacent, then y, then x).
+    """
+    for i in range(x.shape[0]):
+        g = grid[i]
+        ix, fx, ok_x = _cell_axis(x[i, 0], origin[g, 0], inv_resolution[g], upper[g, 0])
+        iy, fy, ok_y = _cell_axis(x[i, 1], origin[g, 1], inv_resolution[g], upper[g, 1])
+        iz, fz, ok_z = _cell_axis(x[i, 2], origin[g, 2], inv_resolution[g], upper[g, 2])
+        ok = ok_x and ok_y and ok_z
+        inside[i] = ok
+        scale = inv_resolution[g] * ok
+        sx, sy = strides[g, 0], strides[g, 1]
+        r = offset[g] + ix * sx + iy * sy + iz * strides[g, 2]
+        for k in range(values.shape[1]):
+            c000, c001 = values[r, k], values[r + 1, k]
+            c010, c011 = values[r + sy, k], values[r + sy + 1, k]
+            c100, c101 = values[r + sx, k], values[r + sx + 1, k]
+            c110, c111 = values[r + sx + sy, k], values[r + sx + sy + 1, k]
+            dz00, dz01, dz10, dz11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110
+            cz00, cz01 = c000 + fz * dz00, c010 + fz * dz01
+            cz10, cz11 = c100 + fz * dz10, c110 + fz * dz11
+            dy0, dy1 = cz01 - cz00, cz11 - cz10
+            cyz0, cyz1 = cz00 + fy * dy0, cz10 + fy * dy1
+            dyz0, dyz1 = dz00 + fy * (dz01 - dz00), dz10 + fy * (dz11 - dz10)
+            dx = cyz1 - cyz0
+            val[i, k] = cyz0 + fx * dx
+            jac[i, k, 0] = dx * scale
+            jac[i, k, 1] = (dy0 + fx * (dy1 - dy0)) * scale
+            jac[i, k, 2] = (dyz0 + fx * (dyz1 - dyz0)) * scale
+
+
+@numba.njit(cache=True)
+def _cell_axis(x, origin, inv_resolution, upper):
+    """Along one axis: the cell's lower node index, the position in the cell in [0, 1], and
+    whether x lies within the grid (outside, the cell of the projection)."""
+    u = (x - origin) * inv_resolution
+    c = min(max(np.floor(u), 0.0), upper - 1.0)
+    return int(c), min(max(u - c, 0.0), 1.0), u >= 0.0 and u <= upper
+
+
+class GridStack:
+    """The Φ columns of several voxel grids (each in its own frame) in one flat table, so that
+    points spread over many grids (guard points against every nearby robot link) take one
+    trilinear query. Grids may be missing (None): such entries must not be queried.
+    """
+
+    def __init__(self, grids: list[VoxelGrid | None]) -> None:
+        present = [g for g in grids if g is not None]
+        self.has_grid = np.array([g is not None for g in grids])
+        zero3 = np.zeros(3)
+        self.origin = np.array([zero3 if g is None else g.origin for g in grids])
+        self.inv_resolution = np.array([0.0 if g is None else 1.0 / g.resolution for g in grids])
+        self.upper = np.array([zero3 + 1.0 if g is None else g._upper for g in grids])
+        self.strides = np.array([np.zeros(3, np.intp) if g is None else g._strides for g in grids])
+        sizes = np.array([0 if g is None else len(g.values) for g in grids])
+        self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
+        self.phi = (np.concatenate([g._phi for g in present]) if present else np.zeros(0))[:, None]
+
+    def distance(self, x: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Φ (N,), its gradient (N, 3) and the inside mask (N,) of points x (N, 3), each in the
+        frame of its grid ``grid`` (N,); as :meth:`VoxelGrid.interpolate_distance` per grid."""
+        n = len(x)
+        val, jac, inside = np.empty((n, 1)), np.empty((n, 1, 3)), np.empty(n, dtype=np.bool_)
+        _trilinear_kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(grid, np.intp), self.phi,
+                          self.origin, self.inv_resolution, self.upper, self.strides, self.offset, val, jac, inside)
+        return val[:, 0], jac[:, 0], inside
 
 
 def build_sdf_grid(mesh: TriMesh, resolution_m: float, band_m: float) -> VoxelGrid:
@@ -318,31 +404,82 @@ class SurfaceGeodesics:
         _, idx = cKDTree(points).query(grid.node_positions, k=k)
         return idx.reshape(-1, k).astype(np.int32)
 
-    def _weights(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Neighbour indices (N, k), normalised weights (N, k) and ∂weights/∂x (N, k, 3)."""
-        # np.take and einsum: fancy indexing and .sum over tiny axes cost several times more here.
+    def weights(self, x: np.ndarray, derivative: bool = False) -> tuple[np.ndarray, ...]:
+        """Neighbour indices (N, k) and normalised weights (N, k) of points x (N, 3), and with
+        ``derivative`` ∂weights/∂x (N, k, 3)."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
         idx = np.take(self.neighbour_table, self.grid.nearest_node(x), axis=0)
-        diff = np.take(self.points, idx, axis=0) - x[:, None]  # s_i − x
-        sq = np.einsum("nkj,nkj->nk", diff, diff)
-        inv_h2 = 1.0 / self.spacing_m**2
-        a = np.exp(-0.5 * inv_h2 * (sq - sq.min(axis=1, keepdims=True)))
-        a /= np.einsum("nk->n", a)[:, None]
-        mean = np.einsum("nk,nkj->nj", a, diff)
-        da = (diff - mean[:, None]) * (a * inv_h2)[:, :, None]  # ∂α_i/∂x = α_i (s_i − s̄)/h²
-        return idx, a, da
+        a = np.empty(idx.shape)
+        da = np.empty(idx.shape + (3,)) if derivative else np.empty((0, 0, 3))
+        _blend_weights(x, idx, self.points, 1.0 / self.spacing_m**2, a, da)
+        return (idx, a, da) if derivative else (idx, a)
+
+    def chord_ratio(self, w: np.ndarray, w_hat: np.ndarray,
+                    hat_weights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """γ(w, ŵ) = ρ/|w − ŵ| (N,), the blended geodesic/chord ratio, and ∂γ/∂w (N, 3):
+        γ = Σ_ij α_i(w) β_j(ŵ) ratio_ij over the neighbour samples of w and ŵ.
+
+        ``hat_weights``: :meth:`weights` of ŵ when already known (they depend on ŵ alone)."""
+        i, a, da = self.weights(w, derivative=True)
+        j, b = self.weights(w_hat) if hat_weights is None else hat_weights
+        gamma, dgamma = np.empty(len(a)), np.empty((len(a), 3))
+        _blend_ratio(self.ratio, i, a, da, j, b, gamma, dgamma)
+        return gamma, dgamma
 
     def distance(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ρ(w; ŵ) (N,) in m and ∂ρ/∂w (N, 3); w, ŵ on the surface (mesh frame)."""
-        i, a, da = self._weights(w)
-        j, b, _ = self._weights(w_hat)
-        ratio = np.take(self.ratio, i[:, :, None] * len(self.points) + j[:, None, :]).astype(np.float64)
-        row = np.einsum("nij,nj->ni", ratio, b)  # Σ_j β_j ratio_ij
-        gamma = np.einsum("ni,ni->n", a, row)
-        dgamma = np.einsum("nij,ni->nj", da, row)
+        gamma, dgamma = self.chord_ratio(w, w_hat)
         chord = w - w_hat
         e = np.sqrt(np.einsum("nj,nj->n", chord, chord))
         unit = np.divide(chord, e[:, None], out=np.zeros_like(chord), where=e[:, None] > 0)
         return e * gamma, gamma[:, None] * unit + e[:, None] * dgamma
+
+
+@numba.njit(cache=True)
+def _blend_weights(x, idx, points, inv_h2, a, da):
+    """Gaussian weights a (N, k) of the samples ``points[idx]`` around each x (N, 3), bandwidth
+    h (inv_h2 = 1/h²), normalised to sum 1; when ``da`` has N rows, ∂a/∂x = a (s − s̄)/h²."""
+    k = idx.shape[1]
+    diff = np.empty((k, 3))
+    sq = np.empty(k)
+    for n in range(x.shape[0]):
+        low = np.inf
+        for i in range(k):
+            for c in range(3):
+                diff[i, c] = points[idx[n, i], c] - x[n, c]  # s_i − x
+            sq[i] = diff[i, 0] * diff[i, 0] + diff[i, 1] * diff[i, 1] + diff[i, 2] * diff[i, 2]
+            low = min(low, sq[i])
+        total = 0.0
+        for i in range(k):
+            a[n, i] = np.exp(-0.5 * inv_h2 * (sq[i] - low))
+            total += a[n, i]
+        for i in range(k):
+            a[n, i] /= total
+        if da.shape[0]:
+            for c in range(3):
+                mean = 0.0
+                for i in range(k):
+                    mean += a[n, i] * diff[i, c]
+                for i in range(k):
+                    da[n, i, c] = (diff[i, c] - mean) * (a[n, i] * inv_h2)
+
+
+@numba.njit(cache=True)
+def _blend_ratio(ratio, i_idx, a, da, j_idx, b, gamma, dgamma):
+    """γ = Σ_i a_i row_i and ∂γ/∂w = Σ_i ∂a_i row_i with row_i = Σ_j b_j ratio[i, j]."""
+    for n in range(a.shape[0]):
+        g = 0.0
+        d0 = d1 = d2 = 0.0
+        for i in range(a.shape[1]):
+            row = 0.0
+            for j in range(b.shape[1]):
+                row += np.float64(ratio[i_idx[n, i], j_idx[n, j]]) * b[n, j]
+            g += a[n, i] * row
+            d0 += da[n, i, 0] * row
+            d1 += da[n, i, 1] * row
+            d2 += da[n, i, 2] * row
+        gamma[n] = g
+        dgamma[n, 0], dgamma[n, 1], dgamma[n, 2] = d0, d1, d2
 
 
 # --------------------------------------------------------------------------- disk cache
@@ -447,7 +584,7 @@ class SDFChannel:
                                      a["geodesic_neighbours"])
         return cls(name or mesh.name, mesh, surface, grid, geodesics, cfg.band_m)
 
-    def query(self, x_c: np.ndarray, exact_witness: bool = False) -> ProximityQuery:
+    def query(self, x_c: np.ndarray, exact_witness: bool = False, normals: bool = True) -> ProximityQuery:
         """Proximity of probes ``x_c`` (N, 3) given in the channel frame (m).
 
         Witnesses are the trilinear blend of the grid's, except in cells that straddle the
@@ -455,7 +592,8 @@ class SDFChannel:
         penetrating probes there take the planar witness (exact on flat faces). With
         ``exact_witness`` (once-per-frame work such as the demonstration's targets), every
         such cell, and every cell stretched like a concave fold, gets the exact closest point
-        of the mesh instead (AABB tree, ~25 µs per probe).
+        of the mesh instead (AABB tree, ~25 µs per probe). Without ``normals`` the result's
+        ``n`` is None (the solver's residuals use the demonstrated n̂ only).
         """
         x = _check_points(self.name, x_c)
         val, jac, inside = self.grid.interpolate(x)
@@ -468,9 +606,11 @@ class SDFChannel:
         # a face (‖∂w/∂x‖²_F = 2; less at convex edges and corners) can straddle the medial axis.
         # The hot path checks penetrating probes only: outside, only folds (concave regions)
         # stretch, and their blends stay within ~2 mm of the surface for 99 % of probes near it.
-        stretched = np.einsum("nij,nij->n", dw_dx, dw_dx) > _MEDIAL_JACOBIAN_SQ
-        suspect = np.flatnonzero(in_band & (stretched | (val[:, 0] < 0.0)) if exact_witness
-                                 else in_band & (val[:, 0] < 0.0))
+        if exact_witness:
+            stretched = np.einsum("nij,nij->n", dw_dx, dw_dx) > _MEDIAL_JACOBIAN_SQ
+            suspect = np.flatnonzero(in_band & (stretched | (val[:, 0] < 0.0)))
+        else:
+            suspect = np.flatnonzero(in_band & (val[:, 0] < 0.0))
         if len(suspect):
             straddle, w_plane, n_plane = _medial_cells(x[suspect], val[suspect, 0], *self.grid.corners(x[suspect]))
             if exact_witness:
@@ -485,13 +625,26 @@ class SDFChannel:
             # The tangent projection of a face (exact there; at an edge or vertex the true ∂w/∂x is smaller).
             dw_dx[fix] = np.eye(3) - normal[:, :, None] * normal[:, None, :]
         grad = jac[:, 0]
+        n = self._normals(x, d, w, grad) if normals else None
+        return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=in_band)
+
+    @staticmethod
+    def _normals(x: np.ndarray, d: np.ndarray, w: np.ndarray, grad: np.ndarray) -> np.ndarray:
+        """Unit witness→probe directions (N, 3); the outward normal (× sign d) at contact."""
         sign = np.where(d < -_ON_SURFACE_M, -1.0, 1.0)[:, None]
         g_norm = np.linalg.norm(grad, axis=1, keepdims=True)
         outward = sign * (x - w) + _NORMAL_BLEND_M * np.divide(grad, g_norm, out=np.zeros_like(grad),
                                                                 where=g_norm > 0)
         o_norm = np.linalg.norm(outward, axis=1, keepdims=True)
-        n = sign * np.divide(outward, o_norm, out=np.zeros_like(outward), where=o_norm > 0)
-        return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=in_band)
+        return sign * np.divide(outward, o_norm, out=np.zeros_like(outward), where=o_norm > 0)
+
+    def distance(self, x_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d, ∂d/∂x, in_band) of :meth:`query` alone, for points that need no witness
+        (non-penetration constraints): (N,), (N, 3), (N,) bool, channel frame."""
+        x = _check_points(self.name, x_c)
+        d, grad, inside = self.grid.interpolate_distance(x)
+        in_band = inside & (d < self.band_m)
+        return np.where(in_band, d, self.band_m), grad * in_band[:, None], in_band
 
     def _closest_points(self, x: np.ndarray) -> np.ndarray:
         """Exact closest surface points (M, 3); the AABB tree is built on first use (it cannot be pickled)."""
@@ -510,6 +663,16 @@ class SDFChannel:
         return self.geodesics.distance(_check_points(self.name, w, "witnesses"),
                                        _check_points(self.name, w_hat, "witnesses"))
 
+    def geodesic_ratio(self, w: np.ndarray, w_hat: np.ndarray,
+                       hat_weights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """γ = ρ/|w − ŵ| (N,) and ∂γ/∂w (N, 3) for witnesses (N, 3); ``hat_weights`` from
+        :meth:`geodesic_weights` of ŵ spares their recomputation."""
+        return self.geodesics.chord_ratio(w, w_hat, hat_weights)
+
+    def geodesic_weights(self, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The geodesic table's neighbours (N, k) and blending weights (N, k) of witnesses ŵ."""
+        return self.geodesics.weights(w_hat)
+
 
 class GroundChannel:
     """The flat ground z = 0 (world frame), exact everywhere; in_band marks z < band_m."""
@@ -520,19 +683,29 @@ class GroundChannel:
         self.name = name
         self.band_m = float(band_m)
 
-    def query(self, x_c: np.ndarray, exact_witness: bool = False) -> ProximityQuery:
-        """Exact triple of probes ``x_c`` (N, 3) in the world frame (``exact_witness`` has no effect)."""
+    def query(self, x_c: np.ndarray, exact_witness: bool = False, normals: bool = True) -> ProximityQuery:
+        """Exact triple of probes ``x_c`` (N, 3) in the world frame (``exact_witness`` has no
+        effect; without ``normals``, ``n`` is None)."""
         x = _check_points(self.name, x_c)
         n_pts = len(x)
         d = x[:, 2].copy()
         w = x.copy()
         w[:, 2] = 0.0
-        n = np.zeros((n_pts, 3))
-        n[:, 2] = np.where(d < 0.0, -1.0, 1.0)
+        n = None
+        if normals:
+            n = np.zeros((n_pts, 3))
+            n[:, 2] = np.where(d < 0.0, -1.0, 1.0)
         grad = np.zeros((n_pts, 3))
         grad[:, 2] = 1.0
         dw_dx = np.broadcast_to(np.diag([1.0, 1.0, 0.0]), (n_pts, 3, 3)).copy()
         return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=d < self.band_m)
+
+    def distance(self, x_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(d = z, ∂d/∂x = e_z, d < band) of points (N, 3) in the world frame."""
+        x = _check_points(self.name, x_c)
+        grad = np.zeros((len(x), 3))
+        grad[:, 2] = 1.0
+        return x[:, 2].copy(), grad, x[:, 2] < self.band_m
 
     def geodesic(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Planar distance between witnesses (N,) and its gradient w.r.t. w (N, 3)."""
@@ -541,6 +714,15 @@ class GroundChannel:
         rho = np.linalg.norm(diff, axis=1)
         return rho, np.divide(diff, rho[:, None], out=np.zeros_like(diff), where=rho[:, None] > 0)
 
+    def geodesic_ratio(self, w: np.ndarray, w_hat: np.ndarray,
+                       hat_weights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """γ = 1, ∂γ/∂w = 0: on the plane the geodesic is the chord (witnesses at z = 0)."""
+        return np.ones(len(w)), np.zeros((len(w), 3))
+
+    def geodesic_weights(self, w_hat: np.ndarray) -> None:
+        """None: the plane needs no geodesic table."""
+        return None
+
 
 def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache_dir: Path | None = None,
                  **kw) -> SDFChannel:
@@ -548,6 +730,6 @@ def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache
     return SDFChannel.from_mesh(load_mesh(path), cfg, cache_dir, **kw)
 
 
-__all__ = ["Channel", "GeometryConfig", "GroundChannel", "InvalidMeshError", "ProximityQuery", "SDFChannel",
+__all__ = ["Channel", "GeometryConfig", "GridStack", "GroundChannel", "InvalidMeshError", "ProximityQuery", "SDFChannel",
            "SurfaceGeodesics", "SurfaceSamples", "VoxelGrid", "build_sdf_grid", "cached_arrays",
            "default_cache_dir", "load_channel", "sample_surface"]

@@ -22,7 +22,6 @@ import pinocchio as pin
 
 from otr_gym import robot
 from otr_gym.robot_geometry import collision_capsules
-from otr_gym.rotations import skew
 
 NUM_LINKS = len(robot.BODY_NAMES)
 
@@ -74,13 +73,19 @@ class RobotKinematics:
     def frames(self, data: pin.Data, q: np.ndarray) -> LinkFrames:
         """Link poses and Jacobians at Pinocchio configuration ``q`` (nq,)."""
         pin.computeJointJacobians(self.model, data, q)
-        oMi = data.oMi
-        rot = np.array([oMi[j].rotation for j in self.joint_ids])
-        pos = np.array([oMi[j].translation for j in self.joint_ids])
+        placement = np.array([m.homogeneous for m in data.oMi])[self.joint_ids]  # (L, 4, 4)
+        rot = placement[:, :3, :3]
+        pos = placement[:, :3, 3]
         jw = data.J  # (6, nv) WORLD: spatial velocity at the world origin
-        lin = jw[None, :3, :] - np.einsum("lij,jn->lin", skew(pos), jw[3:])
-        ang = np.broadcast_to(jw[None, 3:, :], lin.shape)
-        jac = np.concatenate([lin, ang], axis=1) * self.support[:, None, :]
+        ang = jw[3:]
+        # the velocity of each link origin o: v_0 + ω × o, i.e. J_lin − [o]× J_ang
+        jac = np.empty((NUM_LINKS, 6, self.nv))
+        x, y, z = pos[:, 0, None], pos[:, 1, None], pos[:, 2, None]
+        jac[:, 0] = jw[0] - (y * ang[2] - z * ang[1])
+        jac[:, 1] = jw[1] - (z * ang[0] - x * ang[2])
+        jac[:, 2] = jw[2] - (x * ang[1] - y * ang[0])
+        jac[:, 3:] = ang
+        jac *= self.support[:, None, :]
         return LinkFrames(rot, pos, jac)
 
     def integrate(self, q: np.ndarray, dv: np.ndarray) -> np.ndarray:

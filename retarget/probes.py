@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
+import numba
 import numpy as np
 from scipy.spatial import ConvexHull
 
@@ -52,15 +53,25 @@ class ProbeSet:
         r = rot[..., self.body, :, :]
         return np.einsum("...pij,pj->...pi", r, self.points) + pos[..., self.body, :]
 
-    def posed_bodies(self, bodies: np.ndarray, rot: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(indices, world points) of the probes of ``bodies`` (sorted body indices): one
-        matrix product per body, the hot-path form (no per-probe rotation gather)."""
+    def indices_of(self, bodies: np.ndarray) -> np.ndarray:
+        """(k,) indices of the points of ``bodies`` (sorted body indices), in order."""
         off = self.offsets
-        idx = [np.arange(off[k], off[k + 1]) for k in bodies]
-        pts = [self.points[off[k]:off[k + 1]] @ rot[k].T + pos[k] for k in bodies]
-        if not idx:
-            return np.zeros(0, np.intp), np.zeros((0, 3))
-        return np.concatenate(idx), np.concatenate(pts)
+        bodies = np.asarray(bodies, np.intp)
+        out = np.empty(int(np.sum(off[bodies + 1] - off[bodies])), np.intp)
+        _ranges(off, bodies, out)
+        return out
+
+    def posed_index(self, index: np.ndarray, rot: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """World points (k, 3) of the points ``index`` (k,) for body rotations (B, 3, 3) and
+        origins (B, 3): the hot-path form, one pass without gathering rotations per point."""
+        out = np.empty((len(index), 3))
+        _pose(self.points, self.body, np.asarray(index, np.intp), rot, pos, out)
+        return out
+
+    def posed_bodies(self, bodies: np.ndarray, rot: np.ndarray, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(indices, world points) of the probes of ``bodies`` (sorted body indices)."""
+        index = self.indices_of(bodies)
+        return index, self.posed_index(index, rot, pos)
 
     def bounding_spheres(self) -> tuple[np.ndarray, np.ndarray]:
         """Per body: centre (B, 3) in the body frame and radius (B,) enclosing its probes."""
@@ -72,6 +83,26 @@ class ProbeSet:
                 centre[k] = 0.5 * (pts.min(0) + pts.max(0))
                 radius[k] = np.linalg.norm(pts - centre[k], axis=1).max()
         return centre, radius
+
+
+@numba.njit(cache=True)
+def _ranges(offsets, bodies, out):
+    """out ← the concatenated ranges offsets[b]:offsets[b + 1] of ``bodies``."""
+    m = 0
+    for b in bodies:
+        for p in range(offsets[b], offsets[b + 1]):
+            out[m] = p
+            m += 1
+
+
+@numba.njit(cache=True)
+def _pose(points, body, index, rot, pos, out):
+    """out[m] ← rot[b] points[p] + pos[b] for p = index[m], b = body[p]."""
+    for m in range(index.shape[0]):
+        p = index[m]
+        b = body[p]
+        for r in range(3):
+            out[m, r] = rot[b, r, 0] * points[p, 0] + rot[b, r, 1] * points[p, 1] + rot[b, r, 2] * points[p, 2] + pos[b, r]
 
 
 def _stack(names: tuple[str, ...], clouds: list[np.ndarray]) -> ProbeSet:

@@ -23,7 +23,7 @@ from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
 from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError
-from retarget.geometry import GeometryConfig, GroundChannel, SDFChannel
+from retarget.geometry import GeometryConfig, GridStack, GroundChannel, SDFChannel
 from retarget.kinematics import NUM_LINKS, RobotKinematics
 from retarget.margins import cached_margin
 from retarget.meshes import as_trimesh
@@ -148,7 +148,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
     problem = Problem(fps=demo.fps, kin=kin, robot=robot_set, guards=guards, vertex_guards=vertex_guards,
                       link_center=centre, link_radius=radius, **anchors,
                       link_grids=robot_link_grids(solver.check_margin_m, cache_dir) if len(channels) > 1
-                      else (None,) * NUM_LINKS,
+                      else GridStack([None] * NUM_LINKS),
                       demo_points=demo_points, part_pos_w=part_pos, part_rot_w=part_rot, channels=tuple(channels),
                       objects=tuple(objects), style=targets, q_init=np.zeros(kin.nq), interaction=interaction,
                       style_cfg=style, solver=solver, band_m=geometry.band_m)
@@ -164,9 +164,10 @@ LINK_GRID_RESOLUTION_M = 0.005
 
 
 @lru_cache(maxsize=2)
-def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> tuple:
-    """Per G1 link, the signed distance grid of its visual mesh (link frame) out to ``reach_m``
-    (None for links without a mesh); cached on disk like the object grids."""
+def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack:
+    """The signed distance grids of the G1 links' visual meshes (link frames) out to
+    ``reach_m``, stacked in BODY_NAMES order (links without a mesh have none); each grid is
+    cached on disk like the object grids."""
     from retarget.geometry import VoxelGrid, build_sdf_grid, cached_arrays, default_cache_dir
 
     meshes = visual_meshes()
@@ -190,7 +191,7 @@ def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> tuple:
         a = cached_arrays(root / f"{name}.npz", key, build, check)
         grids.append(VoxelGrid(np.asarray(a["origin"], np.float64), LINK_GRID_RESOLUTION_M,
                                tuple(int(v) for v in a["shape"]), np.ascontiguousarray(a["values"], np.float64)))
-    return tuple(grids)
+    return GridStack(grids)
 
 
 def guard_anchors(probes: ProbeSet, guards: ProbeSet) -> tuple[np.ndarray, np.ndarray]:

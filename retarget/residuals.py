@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from retarget.geometry import Channel, ProximityQuery
@@ -72,14 +73,18 @@ def beta_and_slope(d_hat: np.ndarray, d: np.ndarray, sigma: float, beta_max: flo
 
 @dataclass(frozen=True)
 class Triples:
-    """Proximity triples of N probes w.r.t. one channel (channel frame): d (N,) m, w (N, 3), n (N, 3)."""
+    """Proximity triples of N probes w.r.t. one channel (channel frame): d (N,) m, w (N, 3), n (N, 3);
+    ``geodesic``, when the channel has a geodesic table, the neighbours (N, k) and weights (N, k)
+    of every w in it (``Channel.geodesic_weights``), kept for targets used over many iterates."""
 
     d: np.ndarray
     w: np.ndarray
     n: np.ndarray
+    geodesic: tuple[np.ndarray, np.ndarray] | None = None
 
     def take(self, index: np.ndarray) -> Triples:
-        return Triples(self.d[index], self.w[index], self.n[index])
+        geo = None if self.geodesic is None else tuple(np.take(g, index, axis=0) for g in self.geodesic)
+        return Triples(np.take(self.d, index), np.take(self.w, index, axis=0), np.take(self.n, index, axis=0), geo)
 
 
 def to_channel_frame(x_w: np.ndarray, rot_c: np.ndarray, pos_c: np.ndarray) -> np.ndarray:
@@ -132,14 +137,37 @@ def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return out
 
 
-def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin_b: np.ndarray) -> np.ndarray:
-    """(k, 12) factors φ = (a, (x − o_A) × a, −a, −(x − o_B) × a) for world gradients a (k, 3)."""
-    out = np.empty((len(a_w), 12))
-    out[:, 0:3] = a_w
-    out[:, 3:6] = cross(x_w - origin_a, a_w)
-    out[:, 6:9] = -a_w
-    out[:, 9:12] = -cross(x_w - origin_b, a_w)
+def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin_b: np.ndarray | None) -> np.ndarray:
+    """(k, 12) factors φ = (a, (x − o_A) × a, −a, −(x − o_B) × a) for world gradients a (k, 3)
+    at points x (k, 3); origins (k, 3) or (3,).
+
+    ``origin_b`` None: body B is FIXED (no decision variable), its half of φ is left zero.
+    """
+    k = len(a_w)
+    out = np.empty((k, 12))
+    _twist_factors(np.asarray(a_w, np.float64), np.asarray(x_w, np.float64), np.broadcast_to(origin_a, (k, 3)),
+                   np.broadcast_to(np.zeros(3) if origin_b is None else origin_b, (k, 3)), origin_b is not None, out)
     return out
+
+
+@numba.njit(cache=True)
+def _twist_factors(a, x, origin_a, origin_b, with_b, out):
+    for k in range(a.shape[0]):
+        ra0, ra1, ra2 = x[k, 0] - origin_a[k, 0], x[k, 1] - origin_a[k, 1], x[k, 2] - origin_a[k, 2]
+        a0, a1, a2 = a[k, 0], a[k, 1], a[k, 2]
+        out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
+        out[k, 3] = ra1 * a2 - ra2 * a1
+        out[k, 4] = ra2 * a0 - ra0 * a2
+        out[k, 5] = ra0 * a1 - ra1 * a0
+        if with_b:
+            rb0, rb1, rb2 = x[k, 0] - origin_b[k, 0], x[k, 1] - origin_b[k, 1], x[k, 2] - origin_b[k, 2]
+            out[k, 6], out[k, 7], out[k, 8] = -a0, -a1, -a2
+            out[k, 9] = -(rb1 * a2 - rb2 * a1)
+            out[k, 10] = -(rb2 * a0 - rb0 * a2)
+            out[k, 11] = -(rb0 * a1 - rb1 * a0)
+        else:
+            for c in range(6, 12):
+                out[k, c] = 0.0
 
 
 @dataclass(frozen=True)
@@ -170,38 +198,37 @@ def far_field(q: ProximityQuery, x_c: np.ndarray, desired: Triples, is_ground: b
     A pair active in the demonstration but farther than the grid reaches has no gradient; the
     distance to ŵ (an upper bound of d, exact as the probe approaches ŵ) pulls it back in.
     """
-    out = ~q.in_band
-    if is_ground or not out.any():
+    out = np.flatnonzero(~q.in_band)
+    if is_ground or len(out) == 0:
         return q
-    diff = x_c[out] - desired.w[out]
-    dist = np.linalg.norm(diff, axis=1)
+    w_hat = np.take(desired.w, out, axis=0)
+    diff = np.take(x_c, out, axis=0) - w_hat
+    dist = np.sqrt(np.einsum("kj,kj->k", diff, diff))
     unit = diff / np.maximum(dist, 1e-12)[:, None]
-    d, w, n, grad = q.d.copy(), q.w.copy(), q.n.copy(), q.grad_d.copy()
-    d[out], w[out], n[out], grad[out] = dist, desired.w[out], unit, unit
-    dw = q.dw_dx.copy()
-    dw[out] = 0.0
+    d, w, grad, dw = q.d.copy(), q.w.copy(), q.grad_d.copy(), q.dw_dx.copy()
+    d[out], w[out], grad[out], dw[out] = dist, w_hat, unit, 0.0
+    n = None
+    if q.n is not None:
+        n = q.n.copy()
+        n[out] = unit
     return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw, in_band=q.in_band)
 
 
-def witness_vector(channel: Channel, w: np.ndarray, w_hat: np.ndarray,
-                   dw_dx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def witness_vector(channel: Channel, w: np.ndarray, w_hat: np.ndarray, dw_dx: np.ndarray,
+                   hat_weights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """r^x as the vector γ(w − ŵ) (k, 3), whose norm is the geodesic ρ_c(w; ŵ), and its
     Jacobian (k, 3, 3) w.r.t. the probe in the channel frame.
 
     Same cost ρ² as the scalar r^x, but a better Gauss–Newton model: the scalar's gradient is a
     unit vector that flips as w crosses ŵ, so its model has no curvature across that direction
-    and the SQP steps overshoot back and forth. With γ = ρ/|w − ŵ| and u the unit chord,
-    ∂(γ(w − ŵ))/∂w = γ(I − uuᵀ) + u (∂ρ/∂w)ᵀ (exact: along u it is ∂ρ/∂w, across it γ).
+    and the SQP steps overshoot back and forth. With γ = ρ/|w − ŵ| the geodesic/chord ratio,
+    ∂(γ(w − ŵ))/∂w = γ I + (w − ŵ)(∂γ/∂w)ᵀ (exact: along the chord it is ∂ρ/∂w, across it γ).
+    ``hat_weights``: the channel's ``geodesic_weights`` of ŵ, when known.
     """
-    rho, drho = channel.geodesic(w, w_hat)
+    gamma, dgamma = channel.geodesic_ratio(w, w_hat, hat_weights)
     chord = w - w_hat
-    e = np.linalg.norm(chord, axis=1)
-    apart = e > 1e-9
-    gamma = np.where(apart, rho / np.where(apart, e, 1.0), 1.0)
-    u = chord / np.where(apart, e, 1.0)[:, None]
-    jw = gamma[:, None, None] * (np.eye(3) - u[:, :, None] * u[:, None, :]) + u[:, :, None] * drho[:, None, :]
-    jw = np.where(apart[:, None, None], jw, np.eye(3))
-    return gamma[:, None] * chord, jw @ dw_dx
+    jac = gamma[:, None, None] * dw_dx + chord[:, :, None] * np.einsum("nj,njk->nk", dgamma, dw_dx)[:, None, :]
+    return gamma[:, None] * chord, jac
 
 
 def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, float, float],
@@ -213,15 +240,13 @@ def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, flo
     lam_d, lam_x, lam_n = weights
     q = far_field(pairs.query, pairs.x_c, pairs.desired, channel.is_ground)
     d_hat = pairs.desired.d
-    d_hat_pos = np.maximum(d_hat, 0.0)
     b, db = beta_and_slope(d_hat, q.d, cfg.sigma_m, cfg.beta_max)
     bb = beta_bar(d_hat, cfg.sigma_m)
-    rot = pairs.rot_c
 
     # r^d: every active pair, as the row β·r^d (its square is the term λ^d β² (r^d)²), whose
     # derivative (β + β′ r^d) ∇d keeps the kernel's own dependence on d: lagging β as a fixed
     # weight leaves the model's slope off by Σ ∂(β²)/∂d (r^d)², which rejects good steps.
-    r_d = q.d - d_hat_pos
+    r_d = q.d - np.maximum(d_hat, 0.0)
     value = [b * r_d]
     weight = [pairs.norm * lam_d]
     grad_c = [(b + db * r_d)[:, None] * q.grad_d]
@@ -230,32 +255,45 @@ def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, flo
     # r^x, r^n: only where the demonstration is in contact range (β̄ > 0)
     tangential = np.flatnonzero(bb > 0.0)
     if len(tangential):
-        vec, jac_x = witness_vector(channel, q.w[tangential], pairs.desired.w[tangential], q.dw_dx[tangential])
-        w_x = pairs.norm[tangential] * lam_x * bb[tangential] ** 2
+        w_hat = np.take(pairs.desired.w, tangential, axis=0)
+        hat = pairs.desired.geodesic
+        vec, jac_x = witness_vector(channel, np.take(q.w, tangential, axis=0), w_hat,
+                                    np.take(q.dw_dx, tangential, axis=0),
+                                    None if hat is None else tuple(np.take(h, tangential, axis=0) for h in hat))
+        norm_t, bb_t = np.take(pairs.norm, tangential), np.take(bb, tangential)
         value.append(vec.ravel())
-        weight.append(np.repeat(w_x, 3))
+        weight.append(np.repeat(norm_t * lam_x * bb_t ** 2, 3))
         grad_c.append(jac_x.reshape(-1, 3))
         index.append(np.repeat(tangential, 3))
 
-        sign = np.where(d_hat[tangential] < 0.0, -1.0, 1.0)
-        n_hat = sign[:, None] * pairs.desired.n[tangential]
-        proj = np.einsum("kj,kj->k", n_hat, pairs.x_c[tangential] - pairs.desired.w[tangential])
-        below = proj < 0.0
-        value.append(proj[below])
-        weight.append(pairs.norm[tangential[below]] * lam_n * bb[tangential[below]] ** 2)
-        grad_c.append(n_hat[below])
-        index.append(tangential[below])
+        sign = np.where(np.take(d_hat, tangential) < 0.0, -1.0, 1.0)
+        n_hat = sign[:, None] * np.take(pairs.desired.n, tangential, axis=0)
+        proj = np.einsum("kj,kj->k", n_hat, np.take(pairs.x_c, tangential, axis=0) - w_hat)
+        below = np.flatnonzero(proj < 0.0)
+        value.append(np.take(proj, below))
+        weight.append(np.take(norm_t, below) * lam_n * np.take(bb_t, below) ** 2)
+        grad_c.append(np.take(n_hat, below, axis=0))
+        index.append(np.take(tangential, below))
 
     idx = np.concatenate(index)
-    a_w = np.concatenate(grad_c) @ rot.T  # R_c ∂r/∂x_c, row-vector form
-    phi = twist_factors(a_w, pairs.x_w[idx], pairs.origin_a[idx], pairs.pos_c)
-    return Rows(np.concatenate(value), np.concatenate(weight), phi, pairs.body_a[idx],
+    a_w = np.concatenate(grad_c) @ pairs.rot_c.T  # R_c ∂r/∂x_c, row-vector form
+    phi = twist_factors(a_w, np.take(pairs.x_w, idx, axis=0), np.take(pairs.origin_a, idx, axis=0),
+                        None if pairs.body_b == FIXED else pairs.pos_c)
+    return Rows(np.concatenate(value), np.concatenate(weight), phi, np.take(pairs.body_a, idx),
                 np.full(len(idx), pairs.body_b, dtype=np.intp))
 
 
 def distance_rows(pairs: PairSet) -> Rows:
     """Linearised signed distances d + ∇dᵀδ of the pairs (for non-penetration constraints)."""
-    a_w = pairs.query.grad_d @ pairs.rot_c.T
-    phi = twist_factors(a_w, pairs.x_w, pairs.origin_a, pairs.pos_c)
-    return Rows(pairs.query.d.copy(), np.ones(len(a_w)), phi, pairs.body_a,
-                np.full(len(a_w), pairs.body_b, dtype=np.intp))
+    return signed_distance_rows(pairs.query.d.copy(), pairs.query.grad_d, pairs.x_w, pairs.origin_a, pairs.body_a,
+                                pairs.body_b, pairs.rot_c, pairs.pos_c)
+
+
+def signed_distance_rows(d: np.ndarray, grad_c: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray,
+                         body_a: np.ndarray, body_b: int, rot_c: np.ndarray, pos_c: np.ndarray) -> Rows:
+    """Rows d + ∇dᵀδ of k points (world ``x_w`` on bodies ``body_a`` with origins ``origin_a``)
+    against the channel body ``body_b`` at pose (R_c, τ_c); d (k,) m and its gradient
+    ``grad_c`` (k, 3) in the channel frame. ``d`` becomes the rows' value (not copied)."""
+    a_w = grad_c @ rot_c.T
+    return Rows(d, np.ones(len(d)), twist_factors(a_w, x_w, origin_a, None if body_b == FIXED else pos_c), body_a,
+                np.full(len(d), body_b, dtype=np.intp))

@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
+import numba
 import numpy as np
 import pinocchio as pin
 from proxsuite import proxqp
@@ -47,12 +49,12 @@ from retarget.residuals import (
     Rows,
     Triples,
     cross,
-    distance_rows,
     interaction_rows,
+    signed_distance_rows,
     to_channel_frame,
     twist_factors,
 )
-from retarget.style import StyleConfig, StyleTargets, object_style_rows, robot_style_rows
+from retarget.style import StyleConfig, StyleTargets, pose_rows
 
 
 @dataclass(frozen=True)
@@ -173,9 +175,45 @@ class Problem:
     def num_frames(self) -> int:
         return int(self.part_pos_w.shape[0])
 
+    @cached_property
+    def trust(self) -> np.ndarray:
+        """Full per-DoF trust region (n,): 5 cm on translations, 0.10 rad on rotations (eq. m-qp-tr)."""
+        cfg, nv = self.solver, self.kin.nv
+        return np.concatenate([np.full(3, cfg.trust_linear_m), np.full(nv - 3, cfg.trust_angular_rad),
+                               np.tile(np.r_[np.full(3, cfg.trust_linear_m), np.full(3, cfg.trust_angular_rad)],
+                                       len(self.objects))])
+
+    @cached_property
+    def style_bodies(self) -> np.ndarray:
+        """Bodies with a style cost: the tracked links, then the free objects."""
+        return np.concatenate([self.style.links, NUM_LINKS + np.arange(len(self.objects))])
+
+    @cached_property
+    def style_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(λ_pos, λ_rot) of every style body (eq. m-esty-o)."""
+        cfg, n_links, n_obj = self.style_cfg, len(self.style.links), len(self.objects)
+        return (np.r_[np.full(n_links, cfg.pos_weight), np.full(n_obj, cfg.object_pos_weight)],
+                np.r_[np.full(n_links, cfg.rot_weight), np.full(n_obj, cfg.object_rot_weight)])
+
+    @cached_property
+    def guard_reach(self) -> np.ndarray:
+        """(L,) m: the largest anchor separation among each link's hull guards."""
+        return _per_body_max(self.guards.body, self.guard_anchor_d)
+
+    @cached_property
+    def vertex_reach(self) -> np.ndarray:
+        """(L,) m: the largest anchor separation among each link's vertex guards."""
+        return _per_body_max(self.vertex_guards.body, self.vertex_anchor_d)
+
     @property
     def num_variables(self) -> int:
         return self.kin.nv + 6 * len(self.objects)
+
+
+def _per_body_max(body: np.ndarray, value: np.ndarray) -> np.ndarray:
+    out = np.zeros(NUM_LINKS)
+    np.maximum.at(out, body, value)
+    return out
 
 
 # ------------------------------------------------------------------ per-frame targets
@@ -193,6 +231,8 @@ class FrameTargets:
     objects_active: tuple[tuple[np.ndarray | None, ...], ...]
     obj_pos: np.ndarray  # (O, 3) demonstrated object poses
     obj_rot: np.ndarray  # (O, 3, 3)
+    style_pos: np.ndarray  # (S + O, 3) style targets of ``Problem.style_bodies``
+    style_rot: np.ndarray  # (S + O, 3, 3)
 
 
 def _near(track: ChannelTrack, x_c: np.ndarray, reach: float) -> np.ndarray:
@@ -216,6 +256,13 @@ def _demo_triples(track: ChannelTrack, x_w: np.ndarray, rot: np.ndarray, pos: np
         # once per frame: the exact witness where the grid's blend is unreliable (geometry doc)
         q = track.channel.query(x_c[near], exact_witness=True)
         out.d[near], out.w[near], out.n[near] = q.d, q.w, q.n
+        # ŵ's place in the geodesic table, for the r^x rows of every iterate of the frame
+        hat = track.channel.geodesic_weights(q.w)
+        if hat is not None:
+            geodesic = tuple(np.zeros((len(x_w),) + h.shape[1:], h.dtype) for h in hat)
+            for full, part in zip(geodesic, hat):
+                full[near] = part
+            out = Triples(out.d, out.w, out.n, geodesic)
     return out, out.d < band
 
 
@@ -247,7 +294,8 @@ def frame_targets(problem: Problem, t: int) -> FrameTargets:
     obj_pos = np.array([problem.channels[o.channel].pos_w[t] for o in problem.objects]).reshape(-1, 3)
     obj_rot = np.array([problem.channels[o.channel].rot_w[t] for o in problem.objects]).reshape(-1, 3, 3)
     return FrameTargets(t, tuple(robot_t), tuple(robot_a), tuple(robot_l), tuple(obj_t), tuple(obj_a),
-                        obj_pos, obj_rot)
+                        obj_pos, obj_rot, np.concatenate([problem.style.pos_w[t], obj_pos]),
+                        np.concatenate([problem.style.rot_w[t], obj_rot]))
 
 
 # ------------------------------------------------------------------ state
@@ -379,13 +427,17 @@ def _candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray
     return gap - problem.link_radius < problem.band_m
 
 
-def _take(q: ProximityQuery, mask: np.ndarray) -> ProximityQuery:
-    return ProximityQuery(d=q.d[mask], w=q.w[mask], n=q.n[mask], grad_d=q.grad_d[mask], dw_dx=q.dw_dx[mask],
-                          in_band=q.in_band[mask])
+def _take(q: ProximityQuery, index: np.ndarray) -> ProximityQuery:
+    """The answers of ``index`` (np.take: several times faster than fancy indexing of rows)."""
+    return ProximityQuery(d=np.take(q.d, index), w=np.take(q.w, index, axis=0),
+                          n=None if q.n is None else np.take(q.n, index, axis=0),
+                          grad_d=np.take(q.grad_d, index, axis=0), dw_dx=np.take(q.dw_dx, index, axis=0),
+                          in_band=np.take(q.in_band, index))
 
 
-def _rows_take(rows: Rows, mask: np.ndarray) -> Rows:
-    return Rows(rows.value[mask], rows.weight[mask], rows.phi[mask], rows.body_a[mask], rows.body_b[mask])
+def _rows_take(rows: Rows, index: np.ndarray) -> Rows:
+    return Rows(np.take(rows.value, index), np.take(rows.weight, index), np.take(rows.phi, index, axis=0),
+                np.take(rows.body_a, index), np.take(rows.body_b, index))
 
 
 #: Rows are grouped by the nearest of these 6 directions to their distance gradient; each group
@@ -428,21 +480,17 @@ def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad
     return np.sort(close[order[extreme]])
 
 
-def _distance_block(problem: Problem, track: ChannelTrack, rot_c, pos_c, x_w, x_c, body, origin,
-                    query: ProximityQuery) -> Rows:
+def _distance_block(track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, x_w: np.ndarray, x_c: np.ndarray,
+                    body: np.ndarray, origin: np.ndarray, d: np.ndarray, grad_c: np.ndarray) -> Rows:
     """Non-penetration rows of points against a channel: the grid distance minus the grid's
     measured error bound there (``retarget.margins``), so that the exact surface is respected."""
-    ps = PairSet(x_w, x_c, origin, body, track.body, rot_c, pos_c, query, _far_triples(len(x_w), problem.band_m),
-                 np.ones(len(x_w)))
-    rows = distance_rows(ps)
-    if track.margin is not None and len(rows):
-        rows = Rows(rows.value - track.margin.at(x_c), rows.weight, rows.phi, rows.body_a, rows.body_b)
-    return rows
+    value = d - track.margin.at(x_c) if track.margin is not None else d
+    return signed_distance_rows(value, grad_c, x_w, origin, body, track.body, rot_c, pos_c)
 
 
 def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timings: dict[str, float],
-              with_cost: bool = True, counts: np.ndarray | None = None) -> Linearisation:
-    """All rows of the QP at the current iterate (cost rows only when ``with_cost``).
+              counts: np.ndarray | None = None) -> Linearisation:
+    """All rows of the QP at the current iterate.
 
     ``counts`` (L + O,) fixes N_ℓ, the active probe count of each link and object, instead of
     counting at this iterate: ``solve_frame`` counts once per frame, so that E stays a smooth
@@ -465,72 +513,77 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
         rot_c, pos_c = _channel_pose(state, track, targets.t)
         near_links = _candidate_links(problem, track, centre_w, rot_c, pos_c)
         # area probes: near links, and links with a probe in contact range in the demonstration
-        links = np.flatnonzero(near_links | (targets.robot_links[c] if with_cost else False))
+        links = np.flatnonzero(near_links | targets.robot_links[c])
         idx, x_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
-        reach_probe = band if with_cost else check
-        # distance of every area probe, or a lower bound (the filter's reach) where not queried
-        probe_d = np.full(len(problem.robot), reach_probe)
+        # distance of every area probe, or a lower bound (the band) where not queried
+        probe_d = np.full(len(problem.robot), band)
         if len(idx):
             x_c = to_channel_frame(x_w, rot_c, pos_c)
-            demo_active = targets.robot_active[c][idx] if with_cost else np.zeros(len(idx), bool)
-            sel = np.flatnonzero(_near(track, x_c, reach_probe) | demo_active)
-            q = track.channel.query(x_c[sel])
+            demo_active = targets.robot_active[c][idx]
+            sel = np.flatnonzero(_near(track, x_c, band) | demo_active)
+            q = track.channel.query(np.take(x_c, sel, axis=0), normals=False)
             probe_d[idx[sel]] = q.d
-            active = q.in_band | demo_active[sel]
-            body = problem.robot.body[idx[sel]]
-            if with_cost:
-                a = sel[active]
-                robot_pairs.append((c, rot_c, pos_c, idx[a], x_w[a], x_c[a], _take(q, active)))
-                active_links.append(idx[a])
+            active = np.flatnonzero(q.in_band | demo_active[sel])
+            a = sel[active]
+            robot_pairs.append((c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), np.take(x_c, a, axis=0),
+                                _take(q, active)))
+            active_links.append(idx[a])
             # Against the ground the hull vertices (guards) imply every area probe: skip those.
             if not track.is_ground:
-                ib = q.in_band & (q.d < check)
-                con_rows.append(_distance_block(problem, track, rot_c, pos_c, x_w[sel[ib]], x_c[sel[ib]], body[ib],
-                                                fr.pos[body[ib]], _take(q, ib)))
-                con_channel.append(np.full(int(ib.sum()), c))
+                ib = np.flatnonzero(q.in_band & (q.d < check))
+                pts, body = sel[ib], problem.robot.body[idx[sel[ib]]]
+                con_rows.append(_distance_block(track, rot_c, pos_c, np.take(x_w, pts, axis=0),
+                                                np.take(x_c, pts, axis=0), body, np.take(fr.pos, body, axis=0),
+                                                q.d[ib], np.take(q.grad_d, ib, axis=0)))
+                con_channel.append(np.full(len(ib), c))
         link_min[c] = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
         # Guard points: the distance field is 1-Lipschitz, so a guard is at least as far as its
         # nearest area probe (its anchor) minus their separation; only guards whose bound is
-        # within the margin can be close enough to matter, the rest are provably clear.
-        guards, anchor, anchor_d = ((problem.guards, problem.guard_anchor, problem.guard_anchor_d) if track.is_ground
-                                    else (problem.vertex_guards, problem.vertex_anchor, problem.vertex_anchor_d))
-        gi = np.flatnonzero(near_links[guards.body] & (probe_d[anchor] - anchor_d < margin))
+        # within the margin can be close enough to matter, the rest are provably clear. A link
+        # whose closest probe, less its farthest anchor separation, is beyond the margin has
+        # no such guard: its guards are not even looked at.
+        guards, anchor, anchor_d, reach = ((problem.guards, problem.guard_anchor, problem.guard_anchor_d,
+                                            problem.guard_reach) if track.is_ground
+                                           else (problem.vertex_guards, problem.vertex_anchor, problem.vertex_anchor_d,
+                                                 problem.vertex_reach))
+        gi = guards.indices_of(np.flatnonzero(near_links & (link_min[c] - reach < margin)))
+        gi = gi[probe_d[anchor[gi]] - anchor_d[gi] < margin]
         if len(gi):
             gb = guards.body[gi]
-            g_w = np.einsum("kij,kj->ki", fr.rot[gb], guards.points[gi]) + fr.pos[gb]
+            g_w = guards.posed_index(gi, fr.rot, fr.pos)
             g_c = to_channel_frame(g_w, rot_c, pos_c)
-            gq = track.channel.query(g_c)
-            ib = gq.in_band & (gq.d < check)
-            con_rows.append(_distance_block(problem, track, rot_c, pos_c, g_w[ib], g_c[ib], gb[ib], fr.pos[gb[ib]],
-                                            _take(gq, ib)))
-            con_channel.append(np.full(int(ib.sum()), c))
+            d, grad, in_band = track.channel.distance(g_c)
+            ib = np.flatnonzero(in_band & (d < check))
+            body = gb[ib]
+            con_rows.append(_distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0),
+                                            body, np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0)))
+            con_channel.append(np.full(len(ib), c))
     tm.lap("robot_channels")
 
     cost: list[Rows] = []
     total_pairs = 0
-    link_counts = np.zeros(NUM_LINKS, np.intp)
-    object_counts: list[int] = []
-    if with_cost:
-        # f_ℓ/N_ℓ: N_ℓ counts the distinct active probes of link ℓ over all channels
-        active_any = np.zeros(len(problem.robot), dtype=bool)
-        for probes in active_links:
-            active_any[probes] = True
-        n_active = link_counts = np.bincount(problem.robot.body[active_any], minlength=NUM_LINKS)
-        if counts is not None:
-            n_active = counts[:NUM_LINKS]
-        norm_link = problem.interaction.link_weight / np.maximum(n_active, 1)
-        for c, rot_c, pos_c, idx, x_w, x_c, q in robot_pairs:
-            track = problem.channels[c]
-            body = problem.robot.body[idx]
-            ps = PairSet(x_w, x_c, fr.pos[body], body, track.body, rot_c, pos_c, q, targets.robot[c].take(idx),
-                         norm_link[body])
-            cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
-            total_pairs += len(idx)
+    # f_ℓ/N_ℓ: N_ℓ counts the distinct active probes of link ℓ over all channels
+    active_any = np.zeros(len(problem.robot), dtype=bool)
+    for probes in active_links:
+        active_any[probes] = True
+    n_active = link_counts = np.bincount(problem.robot.body[active_any], minlength=NUM_LINKS)
+    if counts is not None:
+        n_active = counts[:NUM_LINKS]
+    norm_link = problem.interaction.link_weight / np.maximum(n_active, 1)
+    for c, rot_c, pos_c, idx, x_w, x_c, q in robot_pairs:
+        track = problem.channels[c]
+        body = problem.robot.body[idx]
+        ps = PairSet(x_w, x_c, np.take(fr.pos, body, axis=0), body, track.body, rot_c, pos_c, q,
+                     targets.robot[c].take(idx), norm_link[body])
+        cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
+        total_pairs += len(idx)
     tm.lap("robot_rows")
 
+    object_counts: list[int] = []
     for i, obj in enumerate(problem.objects):
         body = NUM_LINKS + i
         o_w = obj.probes @ state.obj_rot[i].T + state.obj_pos[i]
+        own = problem.channels[obj.channel]
         pairs = []
         for c, track in enumerate(problem.channels):
             if c == obj.channel:
@@ -538,47 +591,40 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
             rot_c, pos_c = _channel_pose(state, track, targets.t)
             o_c = to_channel_frame(o_w, rot_c, pos_c)
             demo_active = targets.objects_active[i][c]
-            sel = np.flatnonzero(_near(track, o_c, band) | (demo_active if with_cost else False))
+            sel = np.flatnonzero(_near(track, o_c, band) | demo_active)
             if len(sel) == 0:
                 continue
-            q = track.channel.query(o_c[sel])
-            active = q.in_band | demo_active[sel]
+            q = track.channel.query(np.take(o_c, sel, axis=0), normals=False)
+            active = np.flatnonzero(q.in_band | demo_active[sel])
             pairs.append((c, track, rot_c, pos_c, sel[active], _take(q, active)))
-            ib = q.in_band & (q.d < check)
-            n_ib = int(ib.sum())
-            con_rows.append(_distance_block(problem, track, rot_c, pos_c, o_w[sel[ib]], o_c[sel[ib]],
-                                            np.full(n_ib, body), np.broadcast_to(state.obj_pos[i], (n_ib, 3)),
-                                            _take(q, ib)))
-            con_channel.append(np.full(n_ib, c))
+            ib = np.flatnonzero(q.in_band & (q.d < check))
+            pts = sel[ib]
+            con_rows.append(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
+                                            np.full(len(ib), body), np.broadcast_to(state.obj_pos[i], (len(ib), 3)),
+                                            q.d[ib], np.take(q.grad_d, ib, axis=0)))
+            con_channel.append(np.full(len(ib), c))
             # the object's own hull guards against the ground, furniture and other objects
-            own = problem.channels[obj.channel]
             g_w = own.guards @ state.obj_rot[i].T + state.obj_pos[i]
             g_c = to_channel_frame(g_w, rot_c, pos_c)
             gs = np.flatnonzero(_near(track, g_c, check))
             if len(gs):
-                gq = track.channel.query(g_c[gs])
-                gb = gq.in_band & (gq.d < check)
-                n_gb = int(gb.sum())
-                con_rows.append(_distance_block(problem, track, rot_c, pos_c, g_w[gs[gb]], g_c[gs[gb]],
-                                                np.full(n_gb, body), np.broadcast_to(state.obj_pos[i], (n_gb, 3)),
-                                                _take(gq, gb)))
-                con_channel.append(np.full(n_gb, c))
-        if with_cost:
-            active_any = np.zeros(len(obj.probes), dtype=bool)
-            for pair in pairs:
-                active_any[pair[4]] = True
-            n_obj_active = int(active_any.sum()) if counts is None else int(counts[NUM_LINKS + i])
-            object_counts.append(int(active_any.sum()))
-            for c, track, rot_c, pos_c, sel, q in pairs:
-                ps = PairSet(o_w[sel], to_channel_frame(o_w[sel], rot_c, pos_c),
-                             np.broadcast_to(state.obj_pos[i], (len(sel), 3)), np.full(len(sel), body), track.body,
-                             rot_c, pos_c, q, targets.objects[i][c].take(sel),
-                             np.full(len(sel), problem.interaction.link_weight / max(n_obj_active, 1)))
-                cost.append(interaction_rows(ps, track.channel, problem.interaction.object_weights,
-                                             problem.interaction))
-                total_pairs += len(sel)
-            cost.append(object_style_rows(state.obj_pos[i], state.obj_rot[i], targets.obj_pos[i], targets.obj_rot[i],
-                                          body, problem.style_cfg))
+                d, grad, in_band = track.channel.distance(g_c[gs])
+                gb = np.flatnonzero(in_band & (d < check))
+                con_rows.append(_distance_block(track, rot_c, pos_c, g_w[gs[gb]], g_c[gs[gb]], np.full(len(gb), body),
+                                                np.broadcast_to(state.obj_pos[i], (len(gb), 3)), d[gb], grad[gb]))
+                con_channel.append(np.full(len(gb), c))
+        active_any = np.zeros(len(obj.probes), dtype=bool)
+        for pair in pairs:
+            active_any[pair[4]] = True
+        n_obj_active = int(active_any.sum()) if counts is None else int(counts[NUM_LINKS + i])
+        object_counts.append(int(active_any.sum()))
+        for c, track, rot_c, pos_c, sel, q in pairs:
+            ps = PairSet(o_w[sel], to_channel_frame(o_w[sel], rot_c, pos_c),
+                         np.broadcast_to(state.obj_pos[i], (len(sel), 3)), np.full(len(sel), body), track.body,
+                         rot_c, pos_c, q, targets.objects[i][c].take(sel),
+                         np.full(len(sel), problem.interaction.link_weight / max(n_obj_active, 1)))
+            cost.append(interaction_rows(ps, track.channel, problem.interaction.object_weights, problem.interaction))
+            total_pairs += len(sel)
     tm.lap("object_rows")
 
     for c, track in enumerate(problem.channels):
@@ -595,10 +641,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
 
     surface = Rows.concat(con_rows)
     min_dist = float(surface.value.min()) if len(surface) else np.inf
-    initial = np.zeros(0, np.intp)
-    if with_cost:
-        initial = initial_constraints(surface, np.concatenate(con_channel).astype(np.intp) if con_channel
-                                      else np.zeros(0, np.intp), margin)
+    initial = initial_constraints(surface, np.concatenate(con_channel).astype(np.intp) if con_channel
+                                  else np.zeros(0, np.intp), margin)
     tm.lap("constraint_selection")
 
     capsules = self_collision_rows(problem, fr, margin)
@@ -606,10 +650,11 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     initial = np.concatenate([initial, len(surface) + np.arange(len(capsules))])
     tm.lap("self_collision")
 
-    if with_cost:
-        s = targets.t
-        cost.append(robot_style_rows(fr, problem.style.links, problem.style.pos_w[s], problem.style.rot_w[s],
-                                     problem.style_cfg))
+    # E_sty,r and E_sty,o in one batch: the tracked links, then the free objects
+    links = problem.style.links
+    pos_weight, rot_weight = problem.style_weights
+    cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]), np.concatenate([fr.rot[links], state.obj_rot]),
+                          targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
     tm.lap("style_rows")
     return Linearisation(Rows.concat(cost), Rows.concat([surface, capsules]), initial, fr, total_pairs,
                          min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]))
@@ -618,30 +663,29 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
 def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
                       rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
     """Distances of an object's guard points (corners, edge points) to every robot link closer
-    than ``reach``, from each link's own distance grid (link frame).
+    than ``reach``, from each link's own distance grid (link frame), in one stacked query.
 
     A box edge pressed into an arm lies between the arm's probes; seen from the arm's distance
-    field it is the deepest point. Rows: body A the object (FIXED when pinned), body B the link.
+    field it is the deepest point. Rows, grouped by link: body A the object (FIXED when
+    pinned), body B the link.
     """
+    grids = problem.link_grids
+    links = links[grids.has_grid[links]]
     g_w = track.guards @ rot_c.T + pos_c
     centre_w = np.einsum("lij,lj->li", fr.rot[links], problem.link_center[links]) + fr.pos[links]
-    gap = np.linalg.norm(g_w[:, None, :] - centre_w[None], axis=2) - problem.link_radius[links]  # (G, l)
-    blocks = []
-    for j, link in enumerate(links):
-        grid = problem.link_grids[link]
-        if grid is None or not (gap[:, j] < reach).any():
-            continue
-        pts = g_w[gap[:, j] < reach]
-        local = (pts - fr.pos[link]) @ fr.rot[link]
-        val, jac, inside = grid.interpolate(local)
-        keep = inside & (val[:, 0] < reach)
-        if not keep.any():
-            continue
-        a_w = jac[keep, 0] @ fr.rot[link].T  # ∇d in the world
-        x = pts[keep]
-        phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
-        blocks.append(Rows(val[keep, 0], np.ones(len(x)), phi, np.full(len(x), track.body), np.full(len(x), link)))
-    return Rows.concat(blocks)
+    gap = np.linalg.norm(centre_w[:, None, :] - g_w[None], axis=2) - problem.link_radius[links, None]  # (l, G)
+    pair_link, guard = np.nonzero(gap < reach)
+    if len(guard) == 0:
+        return Rows.empty()
+    link = links[pair_link]
+    x = g_w[guard]
+    local = np.einsum("kji,kj->ki", fr.rot[link], x - fr.pos[link])  # Rᵀ(x − o)
+    d, grad, inside = grids.distance(local, link)
+    keep = np.flatnonzero(inside & (d < reach))
+    link, x = link[keep], x[keep]
+    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[keep])  # ∇d in the world
+    phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
+    return Rows(d[keep], np.ones(len(x)), phi, np.full(len(x), track.body), link)
 
 
 def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:
@@ -678,23 +722,40 @@ def assemble_cost(rows: Rows, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     A run's rows share their bodies, hence their Jacobians: its block is
     [J_A; J_B]ᵀ (Φᵀ W Φ) [J_A; J_B] (J_B = 0 for a fixed channel). The 12×12 Φᵀ W Φ of each
-    run is one small product, then all runs go through one batched product with their
-    Jacobians: the cost grows with the number of (body, channel) runs, not of probes.
+    run is accumulated in one pass over the rows, then all runs go through one batched product
+    with their Jacobians: the cost grows with the number of (body, channel) runs, not of probes.
     """
     n = jac.shape[2]
     if len(rows) == 0:
         return np.zeros((n, n)), np.zeros(n)
     starts = _runs(rows.body_a * (jac.shape[0] + 1) + rows.body_b)
-    ends = np.append(starts[1:], len(rows))
-    wphi = rows.weight[:, None] * rows.phi
     m = np.empty((len(starts), 12, 12))
     v = np.empty((len(starts), 12))
-    for r, (s, e) in enumerate(zip(starts, ends)):
-        m[r] = wphi[s:e].T @ rows.phi[s:e]
-        v[r] = wphi[s:e].T @ rows.value[s:e]
-    j = np.concatenate([jac[rows.body_a[starts]], jac[rows.body_b[starts]]], axis=1).reshape(-1, n)
+    _run_moments(rows.value, rows.weight, rows.phi, np.append(starts, len(rows)), rows.body_b[starts] == FIXED, m, v)
+    j = np.concatenate([np.take(jac, rows.body_a[starts], axis=0), np.take(jac, rows.body_b[starts], axis=0)],
+                       axis=1).reshape(-1, n)
     mj = (m @ j.reshape(len(starts), 12, n)).reshape(-1, n)
     return j.T @ mj, j.T @ v.ravel()
+
+
+@numba.njit(cache=True)
+def _run_moments(value, weight, phi, bounds, fixed_b, m, v):
+    """Per run r (rows bounds[r]:bounds[r + 1]): m[r] = Σ w φφᵀ (12, 12), v[r] = Σ w r φ (12,).
+    Runs against a fixed body B (J_B = 0) only need the upper-left 6×6 block."""
+    for r in range(m.shape[0]):
+        size = 6 if fixed_b[r] else 12
+        m[r] = 0.0
+        v[r] = 0.0
+        for k in range(bounds[r], bounds[r + 1]):
+            w = weight[k]
+            for a in range(size):
+                wa = w * phi[k, a]
+                v[r, a] += wa * value[k]
+                for b in range(a, size):
+                    m[r, a, b] += wa * phi[k, b]
+        for a in range(size):
+            for b in range(a):
+                m[r, a, b] = m[r, b, a]
 
 
 def constraint_matrix(rows: Rows, jac: np.ndarray) -> np.ndarray:
@@ -712,21 +773,11 @@ def _interval(lo: np.ndarray, hi: np.ndarray, trust: np.ndarray) -> tuple[np.nda
     return np.where(empty, toward, a), np.where(empty, toward, b)
 
 
-def _trust(problem: Problem) -> np.ndarray:
-    """Full per-DoF trust region (n,): 5 cm on translations, 0.10 rad on rotations (eq. m-qp-tr)."""
+def variable_bounds(problem: Problem, state: SolverState, targets: FrameTargets) -> tuple[np.ndarray, np.ndarray]:
+    """Per-variable boxes on the step at the iterate, trust region aside: joint limits ∩
+    velocity limits ∩ object boxes (eq. m-qp-lim, m-qp-vel, m-qp-box)."""
     cfg = problem.solver
     nv = problem.kin.nv
-    return np.concatenate([np.full(3, cfg.trust_linear_m), np.full(nv - 3, cfg.trust_angular_rad),
-                           np.tile(np.r_[np.full(3, cfg.trust_linear_m), np.full(3, cfg.trust_angular_rad)],
-                                   len(problem.objects))])
-
-
-def step_bounds(problem: Problem, state: SolverState, targets: FrameTargets,
-                trust_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Per-variable boxes: trust region ∩ joint limits ∩ velocity limits ∩ object boxes."""
-    cfg = problem.solver
-    nv = problem.kin.nv
-    trust = trust_scale * _trust(problem)
     lo = np.full(problem.num_variables, -np.inf)
     hi = np.full(problem.num_variables, np.inf)
     qj = state.q[7:]
@@ -737,26 +788,31 @@ def step_bounds(problem: Problem, state: SolverState, targets: FrameTargets,
         qj_prev = state.prev[0][7:]
         lo[6:nv] = np.maximum(lo[6:nv], qj_prev - reach - qj)
         hi[6:nv] = np.minimum(hi[6:nv], qj_prev + reach - qj)
-    b_env = np.repeat(np.asarray(cfg.object_step_box), 3)
-    b_cor = np.repeat(np.asarray(cfg.object_deviation_box), 3)
-    for i in range(len(problem.objects)):
-        s = slice(nv + 6 * i, nv + 6 * i + 6)
-        cum = _pose_error(state.obj_pos[i], state.obj_rot[i], targets.obj_pos[i], targets.obj_rot[i])
-        lo[s], hi[s] = -b_cor - cum, b_cor - cum
+    n_obj = len(problem.objects)
+    if n_obj:
+        # deviation from the demonstrated pose (b_cor), and from the predicted pose: the last
+        # solution moved by the demonstrated displacement (b_env)
+        ref_pos, ref_rot, boxes = [targets.obj_pos], [targets.obj_rot], [cfg.object_deviation_box]
         if state.prev is not None and state.prev_demo is not None:
-            # predicted pose: the last solution moved by the demonstrated displacement
             dp, dr = state.prev_demo
-            pred_pos = state.prev[1][i] + targets.obj_pos[i] - dp[i]
-            pred_rot = targets.obj_rot[i] @ dr[i].T @ state.prev[2][i]
-            acc = _pose_error(state.obj_pos[i], state.obj_rot[i], pred_pos, pred_rot)
-            lo[s] = np.maximum(lo[s], -b_env - acc)
-            hi[s] = np.minimum(hi[s], b_env - acc)
-    return _interval(lo, hi, trust)
+            ref_pos.append(state.prev[1] + targets.obj_pos - dp)
+            ref_rot.append(targets.obj_rot @ np.swapaxes(dr, -1, -2) @ state.prev[2])
+            boxes.append(cfg.object_step_box)
+        k = len(boxes)
+        ref_rot = np.concatenate(ref_rot)
+        error = np.concatenate([np.tile(state.obj_pos, (k, 1)) - np.concatenate(ref_pos),
+                                so3_log(np.tile(state.obj_rot, (k, 1, 1)) @ np.swapaxes(ref_rot, -1, -2))],
+                               axis=1).reshape(k, n_obj * 6)
+        box = np.array([np.tile(np.repeat(b, 3), n_obj) for b in boxes])  # (k, 6 O)
+        lo[nv:] = np.max(-box - error, axis=0)
+        hi[nv:] = np.min(box - error, axis=0)
+    return lo, hi
 
 
-def _pose_error(pos, rot, pos_ref, rot_ref) -> np.ndarray:
-    """(τ − τ_ref, log(R R_refᵀ)) (6,)."""
-    return np.concatenate([pos - pos_ref, so3_log(rot @ rot_ref.T)])
+def step_bounds(problem: Problem, bounds: tuple[np.ndarray, np.ndarray],
+                trust_scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-variable boxes: trust region × ``trust_scale`` ∩ ``variable_bounds``."""
+    return _interval(bounds[0], bounds[1], trust_scale * problem.trust)
 
 
 # ------------------------------------------------------------------ SQP
@@ -773,6 +829,7 @@ class _QPModel:
     energy: float  # E at the iterate
     penalty: float  # L1 penalty of its violations beyond ε_col
     chosen: np.ndarray  # constraint rows in the QP
+    bounds: tuple[np.ndarray, np.ndarray] | None = None  # ``variable_bounds`` at the iterate, once asked
 
     @property
     def merit(self) -> float:
@@ -818,10 +875,12 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m
     tm = _Timer(stats.timings)
-    box_lo, box_hi = step_bounds(problem, state, targets, trust_scale)
+    if model.bounds is None:
+        model.bounds = variable_bounds(problem, state, targets)
+    box_lo, box_hi = step_bounds(problem, model.bounds, trust_scale)
     rows, chosen, jac = model.lin.constraints, model.chosen, model.jac
     for _ in range(4):
-        sub = _rows_take(rows, chosen)
+        sub = _rows_take(rows, np.flatnonzero(chosen))
         # Rows aim at d ≥ 0 (ε_col is the slack for linearisation error); a penetrating pair
         # asks to get out by at most one step, so the QP stays feasible.
         lower = np.minimum(-sub.value, trust_scale * cfg.trust_linear_m)
@@ -830,8 +889,8 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
         delta = state.qp.solve(model.H, model.g, C, lower, box_lo, box_hi)
         tm.lap("qp_solve")
         twist = jac @ delta  # (bodies, 6)
-        predicted = (rows.value + np.einsum("kc,kc->k", rows.phi[:, :6], twist[rows.body_a])
-                     + np.einsum("kc,kc->k", rows.phi[:, 6:], twist[rows.body_b]))
+        both = np.concatenate([np.take(twist, rows.body_a, axis=0), np.take(twist, rows.body_b, axis=0)], axis=1)
+        predicted = rows.value + np.einsum("kc,kc->k", rows.phi, both)
         violated = (predicted < -eps) & ~chosen
         tm.lap("qp_assembly")
         if not violated.any():
@@ -894,7 +953,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         else:
             state.q, state.obj_pos, state.obj_rot = saved
             # shrink around the rejected step (which may sit well inside the region)
-            scale = cfg.trust_shrink * float(np.max(np.abs(delta) / _trust(problem)))
+            scale = cfg.trust_shrink * float(np.max(np.abs(delta) / problem.trust))
             stats.rejected += 1
     lin = model.lin
     # Feasibility restoration: the smallest move that the linearised constraints accept, with a
@@ -943,18 +1002,19 @@ def frame_contacts(problem: Problem, state: SolverState, t: int) -> FrameContact
         links = np.flatnonzero(_candidate_links(problem, track, centre_w, rot_c, pos_c))
         pidx, p_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
         gidx, g_w = problem.guards.posed_bodies(links, fr.rot, fr.pos)
-        pts = np.concatenate([p_w, g_w])
         link = np.concatenate([problem.robot.body[pidx], problem.guards.body[gidx]])
-        x_c = to_channel_frame(pts, rot_c, pos_c)
+        x_c = to_channel_frame(np.concatenate([p_w, g_w]), rot_c, pos_c)
         idx = np.flatnonzero(_near(track, x_c, band))
         if len(idx) == 0:
             continue
-        q = track.channel.query(x_c[idx])
-        d = np.minimum(q.d, band)
-        order = np.lexsort((d, link[idx]))  # per link, closest first
-        first = order[np.concatenate([[True], link[idx][order][1:] != link[idx][order][:-1]])]
-        dist[link[idx][first], c] = d[first]
-        wit[link[idx][first], c] = q.w[first]
+        # distances alone find each link's closest point; only those need a witness
+        d = np.minimum(track.channel.distance(np.take(x_c, idx, axis=0))[0], band)
+        owner = link[idx]
+        order = np.lexsort((d, owner))  # per link, closest first
+        first = order[np.concatenate([[True], owner[order][1:] != owner[order][:-1]])]
+        q = track.channel.query(np.take(x_c, idx[first], axis=0), normals=False)
+        dist[owner[first], c] = np.minimum(q.d, band)
+        wit[owner[first], c] = q.w
     return FrameContacts(dist, wit)
 
 

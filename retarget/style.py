@@ -112,24 +112,28 @@ def robot_style_targets(part_pos_w: np.ndarray, part_quat_w: np.ndarray, kin: Ro
 def robot_style_rows(frames: LinkFrames, links: np.ndarray, pos_target: np.ndarray, rot_target: np.ndarray,
                      cfg: StyleConfig) -> Rows:
     """Rows of λ_pos‖x_ℓ − x̂_ℓ‖² + λ_rot‖log(R_ℓ R̂_ℓᵀ)‖² for the tracked links at one frame."""
-    pos_err = frames.pos[links] - pos_target  # (S, 3)
-    rot_err = so3_log(frames.rot[links] @ np.swapaxes(rot_target, -1, -2))
-    return _pose_rows(pos_err, rot_err, links, cfg.pos_weight, cfg.rot_weight)
+    n = len(links)
+    return pose_rows(frames.pos[links], frames.rot[links], pos_target, rot_target, links,
+                     np.full(n, cfg.pos_weight), np.full(n, cfg.rot_weight))
 
 
 def object_style_rows(pos: np.ndarray, rot: np.ndarray, pos_target: np.ndarray, rot_target: np.ndarray,
                       body: int, cfg: StyleConfig) -> Rows:
     """Rows of λ_o,pos‖τ − τ̂‖² + λ_o,rot‖log(R R̂ᵀ)‖² for one object."""
-    rot_err = so3_log(rot @ rot_target.T)
-    return _pose_rows((pos - pos_target)[None], rot_err[None], np.array([body]), cfg.object_pos_weight,
-                      cfg.object_rot_weight)
+    return pose_rows(pos[None], rot[None], pos_target[None], rot_target[None], np.array([body]),
+                     np.array([cfg.object_pos_weight]), np.array([cfg.object_rot_weight]))
 
 
-def _pose_rows(pos_err: np.ndarray, rot_err: np.ndarray, bodies: np.ndarray, w_pos: float, w_rot: float) -> Rows:
+def pose_rows(pos: np.ndarray, rot: np.ndarray, pos_target: np.ndarray, rot_target: np.ndarray, bodies: np.ndarray,
+              pos_weight: np.ndarray, rot_weight: np.ndarray) -> Rows:
+    """Rows of Σ_b λ_pos,b‖τ_b − τ̂_b‖² + λ_rot,b‖log(R_b R̂_bᵀ)‖², 6 per body, for n bodies
+    (links and objects alike, in one batch): poses (n, 3) m and (n, 3, 3) world, weights (n,)."""
+    pos_err = pos - pos_target
+    rot_err = so3_log(rot @ np.swapaxes(rot_target, -1, -2))
     n = len(bodies)
     phi = np.zeros((n, 6, 12))
     phi[:, :3, :3] = np.eye(3)
     phi[:, 3:, 3:6] = so3_left_jacobian_inverse(rot_err)
-    weight = np.concatenate([np.full(3, w_pos), np.full(3, w_rot)])
-    return Rows(np.concatenate([pos_err, rot_err], axis=1).ravel(), np.tile(weight, n), phi.reshape(-1, 12),
+    weight = np.repeat(np.stack([pos_weight, rot_weight], axis=1), 3, axis=1)
+    return Rows(np.concatenate([pos_err, rot_err], axis=1).ravel(), weight.ravel(), phi.reshape(-1, 12),
                 np.repeat(bodies, 6), np.full(6 * n, FIXED, dtype=np.intp))
