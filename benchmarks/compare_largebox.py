@@ -28,12 +28,17 @@ from pathlib import Path
 import numpy as np
 
 from otr_gym import robot
+from otr_gym.io import write_json
 from otr_gym.reference import ObjectTrack, Reference
-from otr_gym.rotations import linear_velocity_from_positions, quat_from_yaw, quat_to_matrix
+from otr_gym.rotations import (
+    linear_velocity_from_positions,
+    quat_from_yaw,
+    quat_to_matrix,
+)
 from retarget.demos import Demonstration, load_demonstration
 from retarget.evaluation.alignment import demo_at_times
 from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
-from retarget.evaluation.report import format_scale_notes, format_table, write_json
+from retarget.evaluation.report import format_scale_notes, format_table
 from retarget.evaluation.sequence import evaluate_sequence, json_safe
 
 #: The paper's rows for this clip (Sec. IV-B, Fig. "largebox"; METHOD.md headline numbers).

@@ -166,6 +166,16 @@ class Demonstration:
 # ------------------------------------------------------------------ validation
 
 
+def scaled_object_positions(pos_w: np.ndarray, sc: float) -> np.ndarray:
+    """An object's world positions (T, 3) in a scene scaled by ``sc`` whose objects keep their
+    size (OmniRetarget's convention, measured on its sub3_largebox_003 file: x, y × sc; height
+    z₀ + sc (z − z₀) about the first frame's), so that a box resting on the floor stays on it
+    instead of sinking by (1 − sc) of its half height."""
+    out = np.asarray(pos_w, dtype=float) * sc
+    out[:, 2] = pos_w[0, 2] + sc * (pos_w[:, 2] - pos_w[0, 2])
+    return out
+
+
 def _fail(origin: str, problem: str):
     raise InvalidDemonstrationError(f"{origin}: {problem}")
 

@@ -5,7 +5,8 @@ Modes (METHOD.md "Modes"):
 * ``native`` (default): robot and scene at the captured metric scale; every manipulated object
   is a decision variable, static furniture stays a fixed channel.
 * ``scaled``: the human (trajectories and surface) and the object trajectories are multiplied
-  by sc = G1 height / stature (objects keep their size) and every object is fixed (the paper's
+  by sc = G1 height / stature (objects keep their size; object heights scale about the first
+  frame's, ``retarget.demos.scaled_object_positions``) and every object is fixed (the paper's
   ablation and OmniRetarget's convention).
 * ``robot-only``: the ground is the only channel; objects are ignored.
 """
@@ -22,7 +23,7 @@ from scipy.spatial import cKDTree
 from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
-from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError
+from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
 from retarget.geometry import GeometryConfig, GridStack, GroundChannel, SDFChannel
 from retarget.kinematics import NUM_LINKS, RobotKinematics
 from retarget.margins import cached_margin
@@ -127,7 +128,8 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
             free = mode == "native" and not obj.static
             body = NUM_LINKS + len(objects) if free else FIXED
             lower, upper = ch.mesh.bounds
-            channels.append(ChannelTrack(obj.name, ch, body, obj.pos_w * scale, quat_to_matrix(obj.quat_w),
+            channels.append(ChannelTrack(obj.name, ch, body, scaled_object_positions(obj.pos_w, scale),
+                                         quat_to_matrix(obj.quat_w),
                                          lower, upper, hull_guard_points(ch.mesh.vertices, guard_spacing_m,
                                                                          along_edges=True),
                                          cached_margin(ch.grid, ch.mesh, MARGIN_REACH_M, cache_dir)))

@@ -97,9 +97,11 @@ def test_scaled_mode_scales_the_human_and_pins_the_object():
     assert ref.metadata["scale"] == pytest.approx(sc) and ref.metadata["free_objects"] == []
     box = next(o for o in ref.objects if o.name == "box")
     src = next(o for o in demo.objects if o.name == "box")
-    # pinned: the reference's box is the demonstrated track × sc (at 50 fps: first and last frames)
-    np.testing.assert_allclose(box.pos_w[0], src.pos_w[0] * sc, atol=1e-9)
-    np.testing.assert_allclose(box.pos_w[-1], src.pos_w[-1] * sc, atol=1e-9)
+    # pinned: horizontal track × sc, height scaled about the first frame's (a box resting on the
+    # floor stays on it; OmniRetarget's convention); at 50 fps: first and last frames
+    np.testing.assert_allclose(box.pos_w[[0, -1], :2], src.pos_w[[0, -1], :2] * sc, atol=1e-9)
+    np.testing.assert_allclose(box.pos_w[0, 2], src.pos_w[0, 2], atol=1e-9)
+    np.testing.assert_allclose(box.pos_w[-1, 2], src.pos_w[0, 2] + sc * (src.pos_w[-1, 2] - src.pos_w[0, 2]), atol=1e-9)
 
 
 def test_omomo_clip_without_its_object_mesh_is_named(shared_data, tmp_path):

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from otr_gym import robot
-from retarget.demos import Demonstration
+from retarget.demos import Demonstration, scaled_object_positions
 
 
 @dataclass(frozen=True)
@@ -95,8 +95,6 @@ def scale_demonstration(demo: Demonstration, sc: float) -> Demonstration:
     surface = replace(demo.surface, vertices=[v * sc for v in demo.surface.vertices])
     objects = []
     for o in demo.objects:
-        pos = o.pos_w * sc
-        pos[:, 2] = o.pos_w[0, 2] + sc * (o.pos_w[:, 2] - o.pos_w[0, 2])
-        objects.append(replace(o, pos_w=pos))
+        objects.append(replace(o, pos_w=scaled_object_positions(o.pos_w, sc)))
     return replace(demo, part_pos_w=demo.part_pos_w * sc, surface=surface, stature_m=demo.stature_m * sc,
                    objects=objects)
