@@ -85,7 +85,6 @@ def _axis_rotations(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
     return out
 
 
-@lru_cache(maxsize=1)
 def arm_links(side: str) -> np.ndarray:
     """Indices into ``robot.BODY_NAMES`` of one arm's links (shoulder to hand), side 'left'/'right'."""
     parts = ("shoulder", "elbow", "wrist", "hand")
@@ -93,6 +92,7 @@ def arm_links(side: str) -> np.ndarray:
                      if n.startswith(f"{side}_") and any(p in n for p in parts)], dtype=np.intp)
 
 
+@lru_cache(maxsize=1)
 def arm_chains() -> tuple[ArmChain, ArmChain]:
     """The left and right arm chains of the G1 model (Pinocchio), with their style slots."""
     from retarget.human import STYLE_LINKS

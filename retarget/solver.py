@@ -910,7 +910,8 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
     """The QP step of eq. m-qp at the model's iterate, trust region × ``trust_scale``.
 
     Constraint rows start from ``model.chosen``; after each solve every candidate row is
-    predicted through the bodies' twists and the violated ones are added (at most 3 times).
+    predicted through the bodies' twists and the violated ones are added (at most 3 times, and
+    not after a QP that ProxQP could not solve).
     """
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m
@@ -926,8 +927,11 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
         lower = np.minimum(-sub.value, trust_scale * cfg.trust_linear_m)
         C = constraint_matrix(sub, jac)
         tm.lap("qp_assembly")
+        failures = state.qp.failures
         delta = state.qp.solve(model.H, model.g, C, lower, box_lo, box_hi)
         tm.lap("qp_solve")
+        if state.qp.failures > failures:
+            break  # the rows conflict already: more rows cannot help, the relaxed step stands
         twist = jac @ delta  # (bodies, 6)
         both = np.concatenate([np.take(twist, rows.body_a, axis=0), np.take(twist, rows.body_b, axis=0)], axis=1)
         predicted = rows.value + np.einsum("kc,kc->k", rows.phi, both)
@@ -1013,10 +1017,13 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         chosen[lin.initial] = True
         chosen |= lin.constraints.value < eps
         restore = _QPModel(lin, 0.0, 0.0, jac, np.eye(n), np.zeros(n), chosen)
+        failures = state.qp.failures
         delta = qp_step(problem, state, targets, restore, cfg.feasibility_trust_scale ** k, stats)
         stats.iterations += 1
         retract(problem, state, delta)
         lin = linearise(problem, state, targets, stats.timings, counts=counts)
+        if state.qp.failures > failures:
+            break  # the linearised constraints conflict (e.g. a pinned object in the hand's way)
     stats.active_pairs = lin.active_pairs
     stats.min_distance_m = lin.min_distance
     stats.min_self_distance_m = lin.min_self_distance
