@@ -115,3 +115,31 @@ def check_reference(reference, demo, contact_m: float = 0.02) -> ReferenceChecks
         joint_limit_excess_rad=excess, joint_speed_ratio=float(speed.max()) if len(speed) else 0.0,
         hand_hold=hold_hits / hold_total if hold_total else float("nan"), hand_contact_frames=hold_total,
         object_min_height_m=min_height, frames=T)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m retarget.verify REFERENCE --demo DEMO [--object MESH]``: print the checks."""
+    import argparse
+
+    from otr_gym.reference import Reference
+    from retarget.demos import load_demonstration
+    from retarget.problem import resample_demonstration
+
+    p = argparse.ArgumentParser(prog="python -m retarget.verify", description=__doc__.split("\n\n")[0])
+    p.add_argument("reference", help="retargeted reference .npz (native mode)")
+    p.add_argument("--demo", required=True, help="the demonstration it was made from")
+    p.add_argument("--object", default=None, help="object mesh when the demonstration file lacks it")
+    args = p.parse_args(argv)
+    reference = Reference.load(args.reference)
+    demo = resample_demonstration(load_demonstration(args.demo, args.object), reference.fps)
+    limit_mm = 0.3
+    for key, value in check_reference(reference, demo).as_dict().items():
+        note = ""
+        if key.endswith("penetration_mesh_m"):
+            note = "ok" if value <= limit_mm * 1e-3 else f"beyond {limit_mm} mm"
+        print(f"{key:28s} {value:.6g} {note}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

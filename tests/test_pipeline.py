@@ -131,3 +131,17 @@ def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(sh
     assert checks.joint_limit_excess_rad <= 1e-6 and checks.joint_speed_ratio <= 1.0
     assert checks.hand_contact_frames > 300 and checks.hand_hold >= 0.95
     assert checks.object_min_height_m >= -EPS_COL
+
+
+def test_verify_cli_prints_the_checks_of_a_retargeted_walk(tiny, tmp_path, capsys):
+    from retarget.verify import main as verify_main
+
+    out = tmp_path / "out"
+    assert main(_args(str(tiny / "walk_a.npz"), "--out", str(out))) == 0
+    capsys.readouterr()
+    assert verify_main([str(out / "walk_a.npz"), "--demo", str(tiny / "walk_a.npz")]) == 0
+    rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
+    assert rows["ground_penetration_mesh_m"].split()[1] == "ok"
+    assert float(rows["ground_penetration_mesh_m"].split()[0]) <= EPS_COL
+    assert 0.0 < float(rows["joint_speed_ratio"]) <= 1.0
+    assert int(rows["frames"]) == Reference.load(out / "walk_a.npz").num_frames
