@@ -23,7 +23,12 @@ from scipy.spatial import cKDTree
 from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
-from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
+from retarget.demos import (
+    Demonstration,
+    DemoObject,
+    InvalidDemonstrationError,
+    scaled_object_positions,
+)
 from retarget.geometry import GeometryConfig, GridStack, GroundChannel, SDFChannel
 from retarget.kinematics import NUM_LINKS, RobotKinematics
 from retarget.margins import cached_margin
@@ -38,7 +43,7 @@ from retarget.probes import (
 )
 from retarget.residuals import FIXED, InteractionConfig
 from retarget.solver import ChannelTrack, FreeObject, Problem, SolverConfig
-from retarget.style import StyleConfig, robot_style_targets
+from retarget.style import StyleConfig, pelvis_height_ratio, robot_style_targets
 
 MODES = ("native", "scaled", "robot-only")
 
@@ -136,7 +141,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
             if free:
                 objects.append(FreeObject(obj.name, len(channels) - 1, ch.surface.points))
 
-    targets = robot_style_targets(part_pos, demo.part_quat_w, kin)
+    targets = robot_style_targets(part_pos, demo.part_quat_w, kin, pelvis_height_ratio(demo.stature_m * scale))
     guards = robot_guard_points(guard_spacing_m)
     vertex_guards = robot_vertex_guards()
     both = ProbeSet(robot_set.body_names, np.concatenate([robot_set.points, guards.points]),
@@ -170,7 +175,12 @@ def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack
     """The signed distance grids of the G1 links' visual meshes (link frames) out to
     ``reach_m``, stacked in BODY_NAMES order (links without a mesh have none); each grid is
     cached on disk like the object grids."""
-    from retarget.geometry import VoxelGrid, build_sdf_grid, cached_arrays, default_cache_dir
+    from retarget.geometry import (
+        VoxelGrid,
+        build_sdf_grid,
+        cached_arrays,
+        default_cache_dir,
+    )
 
     meshes = visual_meshes()
     root = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "robot_links"

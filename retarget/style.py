@@ -18,11 +18,17 @@ world rotation δθ changes e by J_l⁻¹(e) δθ.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
 from otr_gym import robot
-from otr_gym.rotations import quat_mul, quat_to_matrix, so3_left_jacobian_inverse, so3_log
+from otr_gym.rotations import (
+    quat_mul,
+    quat_to_matrix,
+    so3_left_jacobian_inverse,
+    so3_log,
+)
 from retarget.kinematics import LinkFrames, RobotKinematics
 from retarget.residuals import FIXED, Rows
 
@@ -81,9 +87,41 @@ def _style_sources(kin: RobotKinematics, styled: np.ndarray) -> np.ndarray:
     return source
 
 
-def robot_style_targets(part_pos_w: np.ndarray, part_quat_w: np.ndarray, kin: RobotKinematics) -> StyleTargets:
-    """Targets for every frame from human part poses (T, 22, 3) m / (T, 22, 4) wxyz (world)."""
-    from retarget.human import STYLE_LINKS, alignment_offsets, g1_tpose_body_poses, part_index
+@lru_cache(maxsize=1)
+def _pelvis_heights() -> tuple[float, float]:
+    """(G1 T-pose pelvis height, mannequin T-pose pelvis height / its stature), soles at z = 0."""
+    from retarget.human import HumanModel, g1_tpose_body_poses, human_tpose
+
+    model = HumanModel()
+    pos, quat = human_tpose(model)
+    stature = float(model.posed_vertices(pos[None], quat[None])[0, :, 2].max())
+    return float(g1_tpose_body_poses()[0][0, 2]), float(pos[0, 2]) / stature
+
+
+def pelvis_height_ratio(stature_m: float) -> float:
+    """G1 pelvis height / the person's (standing, soles on the floor), from the stature (m).
+
+    The pelvis target's height is the person's times this ratio (ours): with the person's own
+    height, a leap lifts the shorter-legged G1 by the person's pelvis rise *plus* the leg-length
+    difference (on AMASS walk_jog_turn the G1's soles left the floor by 38 cm where the person's
+    left it by 15 cm), and in stance the target pulls the pelvis up against the foot contacts.
+    """
+    g1, per_stature = _pelvis_heights()
+    return g1 / (per_stature * stature_m) if stature_m > 0 else 1.0
+
+
+def robot_style_targets(part_pos_w: np.ndarray, part_quat_w: np.ndarray, kin: RobotKinematics,
+                        pelvis_height_scale: float = 1.0) -> StyleTargets:
+    """Targets for every frame from human part poses (T, 22, 3) m / (T, 22, 4) wxyz (world).
+
+    The pelvis position target is the person's with its height × ``pelvis_height_scale``
+    (``pelvis_height_ratio``); the other position targets follow by the G1's link lengths."""
+    from retarget.human import (
+        STYLE_LINKS,
+        alignment_offsets,
+        g1_tpose_body_poses,
+        part_index,
+    )
 
     links = robot.body_indices(list(STYLE_LINKS))
     parts = part_index(list(STYLE_LINKS.values()))
@@ -103,7 +141,7 @@ def robot_style_targets(part_pos_w: np.ndarray, part_quat_w: np.ndarray, kin: Ro
     pos_all = np.empty((T, len(source), 3))
     for k, parent in enumerate(kin.parents):  # parents precede children in BODY_NAMES order
         if parent < 0:
-            pos_all[:, k] = part_pos_w[:, 0]  # pelvises aligned
+            pos_all[:, k] = part_pos_w[:, 0] * np.array([1.0, 1.0, pelvis_height_scale])  # pelvises aligned
         else:
             pos_all[:, k] = pos_all[:, parent] + rot_all[:, parent] @ kin.offsets_parent[k]
     return StyleTargets(links, pos_all[:, links], rot_all[:, links])

@@ -9,7 +9,13 @@ from otr_gym import robot
 from otr_gym.rotations import quat_to_matrix, so3_exp
 from retarget.human import HumanModel, g1_tpose_body_poses, g1_tpose_qpos, human_tpose
 from retarget.kinematics import NUM_LINKS, RobotKinematics
-from retarget.style import StyleConfig, object_style_rows, robot_style_rows, robot_style_targets
+from retarget.style import (
+    StyleConfig,
+    object_style_rows,
+    pelvis_height_ratio,
+    robot_style_rows,
+    robot_style_targets,
+)
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +33,18 @@ def test_human_tpose_gives_the_g1_tpose_as_targets(kin):
     pelvis = g1_pos[0]
     np.testing.assert_allclose(targets.pos_w[0] - pos[0], g1_pos[targets.links] - pelvis, atol=1e-9)
 
+
+
+def test_pelvis_height_ratio_puts_the_human_tpose_pelvis_at_the_g1_tpose_pelvis(kin):
+    model = HumanModel()
+    pos, quat = human_tpose(model)
+    stature = model.posed_vertices(pos[None], quat[None])[0, :, 2].max()
+    ratio = pelvis_height_ratio(stature)
+    targets = robot_style_targets(pos[None], quat[None], kin, ratio)
+    pelvis = int(np.flatnonzero(targets.links == 0)[0])
+    np.testing.assert_allclose(targets.pos_w[0, pelvis, 2], g1_tpose_body_poses()[0][0, 2], atol=1e-9)
+    np.testing.assert_allclose(targets.pos_w[0, pelvis, :2], pos[0, :2], atol=1e-12)  # horizontal kept
+    assert 0.7 < ratio < 0.95 and pelvis_height_ratio(2 * stature) == pytest.approx(ratio / 2)
 
 def test_style_rows_vanish_at_the_targets_and_match_finite_differences(kin):
     q = robot.qpos_mujoco_to_pinocchio(g1_tpose_qpos())
