@@ -90,8 +90,11 @@ def test_training_writes_a_run_folder_with_config_checkpoints_and_curves(run_dir
     for tag in ("Train/mean_episode_length", "Perf/total_fps", "metric/mpjpe_mm", "reward/body_pos",
                 "reward/action_rate", "termination/anchor_height", "Loss/learning_rate"):
         assert scalars[tag][0][0] == 0, tag
-    assert all(0.0 < v < 1000.0 for v in scalars["metric/mpjpe_mm"][1])
-    assert all(v > 0 for v in scalars["Perf/total_fps"][1])
+    # an untrained policy started on the reference drifts off it by centimetres, not by metres
+    # (measured 80-100 mm over the first iterations); 0 would mean the error is not measured
+    assert all(20.0 < v < 300.0 for v in scalars["metric/mpjpe_mm"][1])
+    # 384 samples per iteration on this CPU: a few hundred env steps/s (measured 420-580)
+    assert all(20.0 < v < 20_000.0 for v in scalars["Perf/total_fps"][1])
 
 
 def test_resume_continues_counter_optimizer_normalizer_and_curves(resumed_run):
@@ -193,7 +196,7 @@ def test_evaluating_a_run_scores_every_checkpoint_and_plots(resumed_run, walk_re
     final = results["final"]
     assert final["envs"] == 1 and final["clips"][0]["clip"] == "walk"
     assert 0 < final["frames"] <= 150  # the 151-frame clip has 150 steps
-    assert np.isfinite(final["mpjpe_mm"]) and final["mpjpe_mm"] > 0
+    assert 5.0 < final["mpjpe_mm"] < 300.0  # deterministic, two iterations in: centimetres off the clip
     assert (tmp_path / "eval.png").stat().st_size > 10_000
 
 

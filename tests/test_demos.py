@@ -230,17 +230,22 @@ def test_omomo_bad_tensor_raises_naming_the_file(tmp_path, tensor, message):
     assert str(path) in str(info.value)
 
 
+def _minimal_omomo_tensor(frames: int = 12) -> torch.Tensor:
+    """An InterMimic-layout tensor that reads: identity orientations, distinct joint positions."""
+    x = torch.zeros(frames, 591)
+    x[:, 383:591] = torch.tensor([0.0, 0.0, 0.0, 1.0]).repeat(52)  # identity body orientations (xyzw)
+    x[:, 321:325] = torch.tensor([0.0, 0.0, 0.0, 1.0])
+    x[:, 162:318] = torch.arange(156, dtype=torch.float32) * 1e-3
+    return x
+
+
 def test_omomo_corrupt_file_and_missing_mesh_are_reported(tmp_path):
     corrupt = tmp_path / "sub1_largebox_000.pt"
     corrupt.write_bytes(b"\x00garbage")
     with pytest.raises(InvalidDemonstrationError, match="not a readable torch tensor file"):
         load_demonstration(corrupt, object_mesh=_box_obj(tmp_path / "box.obj"))
-    x = torch.zeros(12, 591)
-    x[:, 383:591] = torch.tensor([0.0, 0.0, 0.0, 1.0]).repeat(52)  # identity body orientations (xyzw)
-    x[:, 321:325] = torch.tensor([0.0, 0.0, 0.0, 1.0])
-    x[:, 162:318] = torch.arange(156, dtype=torch.float32) * 1e-3
     clip = tmp_path / "sub1_largebox_001.pt"
-    torch.save(x, clip)
+    torch.save(_minimal_omomo_tensor(), clip)
     with pytest.raises(DemonstrationFileNotFoundError, match=r"object mesh for 'largebox' not found"):
         load_demonstration(clip)
     with pytest.raises(DemonstrationFileNotFoundError, match="no_such.obj"):
@@ -254,12 +259,12 @@ def test_omomo_unusable_object_mesh_is_reported_with_both_files(tmp_path):
         load_demonstration(tmp_path / "sub1_largebox_002.pt", object_mesh=tmp_path / "empty.obj")
 
 
-def test_subject_heights_loader_refuses_code_in_the_pickle(tmp_path, shared_data):
+def test_subject_heights_loader_refuses_code_in_the_pickle(tmp_path):
     pt = tmp_path / "sub3_largebox_003.pt"
-    pt.write_bytes((shared_data / OMOMO_CLIP).read_bytes())
+    torch.save(_minimal_omomo_tensor(), pt)
     (tmp_path / "subject_heights.pkl").write_bytes(pickle.dumps({"sub3": os.system}))
     with pytest.raises(InvalidDemonstrationError, match=r"subject_heights.pkl.*refusing to load"):
-        load_demonstration(pt, object_mesh=shared_data / "objects" / "largebox.obj")
+        load_demonstration(pt, object_mesh=_box_obj(tmp_path / "box.obj"))
 
 
 # ------------------------------------------------------------------ OMOMO (real clip)
