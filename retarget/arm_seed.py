@@ -28,7 +28,7 @@ from functools import lru_cache
 import numpy as np
 
 from otr_gym import robot
-from otr_gym.rotations import so3_log
+from otr_gym.rotations import quat_to_matrix, so3_log, xyzw_to_wxyz
 
 #: Per arm, the tracked links of ``retarget.human.STYLE_LINKS`` that the seed matches.
 _TRACKED = ("shoulder_yaw_link", "elbow_link", "wrist_yaw_link")
@@ -138,21 +138,6 @@ def _tracked(rot: np.ndarray) -> np.ndarray:
     return rot[:, [5, 6, 9]]
 
 
-def _rotation_log(m: np.ndarray) -> np.ndarray:
-    """log (…, 3) of rotations (…, 3, 3): θ/(2 sin θ)(m − mᵀ)^∨ from the trace, a few
-    microseconds for the handful of matrices here; ``so3_log`` (exact at θ ≈ π) where
-    θ > 3 rad, where that formula loses its axis."""
-    cos = np.clip((np.trace(m, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
-    theta = np.arccos(cos)
-    vee = np.stack([m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1)
-    scale = np.where(theta < 1e-6, 0.5, theta / (2.0 * np.sin(np.maximum(theta, 1e-6))))
-    out = scale[..., None] * vee
-    wide = theta > 3.0
-    if wide.any():
-        out[wide] = so3_log(m[wide])
-    return out
-
-
 def style_cost(chain: ArmChain, base_rot: np.ndarray, angles: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """Σ over the 3 tracked links of ‖log(R_ℓ R̂_ℓᵀ)‖² (rad²), for n angle sets (n, 10)."""
     rel = _tracked(arm_rotations(chain, base_rot, angles)) @ np.swapaxes(targets, -1, -2)
@@ -234,7 +219,7 @@ def _polish(chain: ArmChain, base_rot: np.ndarray, waist: np.ndarray, targets: n
     below = np.array([[m <= k for m in range(7)] for k in (2, 3, 6)], dtype=float)  # (3 links, 7 joints)
     for _ in range(iterations):
         rot = arm_rotations(chain, base_rot, angles)
-        err = _rotation_log(_tracked(rot) @ np.swapaxes(targets, -1, -2)).reshape(n, 9)
+        err = so3_log(_tracked(rot) @ np.swapaxes(targets, -1, -2)).reshape(n, 9)
         axes = rot[:, 3:, :, :][np.arange(n)[:, None], np.arange(7)[None], :, chain.axis[3:]]  # (n, 7, 3) world
         jac = np.einsum("lm,nmi->nlim", below, axes).reshape(n, 9, 7)
         jtj = np.einsum("nri,nrj->nij", jac, jac) + damping * np.eye(7)
@@ -262,8 +247,6 @@ def seed_arms(q: np.ndarray, q_prev: np.ndarray | None, targets_rot: np.ndarray,
     first frame: no velocity limit). ``free`` (left, right): arms near an object are left alone —
     a style-only jump of an arm that holds or touches something drives it into the object and
     leaves the SQP with conflicting non-penetration rows."""
-    from otr_gym.rotations import quat_to_matrix, xyzw_to_wxyz
-
     out = q.copy()
     base_rot = quat_to_matrix(xyzw_to_wxyz(q[3:7]))
     for chain, arm_free in zip(arm_chains(), free, strict=True):

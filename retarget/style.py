@@ -93,9 +93,8 @@ def _pelvis_heights() -> tuple[float, float]:
     from retarget.human import HumanModel, g1_tpose_body_poses, human_tpose
 
     model = HumanModel()
-    pos, quat = human_tpose(model)
-    stature = float(model.posed_vertices(pos[None], quat[None])[0, :, 2].max())
-    return float(g1_tpose_body_poses()[0][0, 2]), float(pos[0, 2]) / stature
+    pelvis_z = float(human_tpose(model)[0][0, 2])
+    return float(g1_tpose_body_poses()[0][0, 2]), pelvis_z / model.stature_m
 
 
 def pelvis_height_ratio(stature_m: float) -> float:

@@ -38,7 +38,7 @@ def test_human_tpose_gives_the_g1_tpose_as_targets(kin):
 def test_pelvis_height_ratio_puts_the_human_tpose_pelvis_at_the_g1_tpose_pelvis(kin):
     model = HumanModel()
     pos, quat = human_tpose(model)
-    stature = model.posed_vertices(pos[None], quat[None])[0, :, 2].max()
+    stature = model.stature_m
     ratio = pelvis_height_ratio(stature)
     targets = robot_style_targets(pos[None], quat[None], kin, ratio)
     pelvis = int(np.flatnonzero(targets.links == 0)[0])
