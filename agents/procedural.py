@@ -25,6 +25,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_conj, quat_mul, quat_to_rotvec
+from otr_gym.scene import robot_model
 
 _LEGS = {  # foot body -> its 6 joint columns in G1 order (= qvel index - 6)
     "left_ankle_roll_link": np.arange(0, 6),
@@ -105,7 +106,7 @@ def _footstep_trajectories(spec: WalkSpec) -> tuple[np.ndarray, np.ndarray]:
 def _default_feet() -> np.ndarray:
     import mujoco
 
-    model = robot.load_mujoco_model(visual=False)
+    model = robot_model(visual=False)
     data = mujoco.MjData(model)
     data.qpos[:] = robot.default_qpos()
     mujoco.mj_kinematics(model, data)
@@ -124,7 +125,7 @@ def _solve_legs(qpos: np.ndarray, feet_xyz: np.ndarray, iterations: int = 50, da
     default (flat) foot orientation; damped least squares on the 6-D body Jacobian."""
     import mujoco
 
-    model = robot.load_mujoco_model(visual=False)
+    model = robot_model(visual=False)
     data = mujoco.MjData(model)
     data.qpos[:] = robot.default_qpos()
     mujoco.mj_kinematics(model, data)

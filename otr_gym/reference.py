@@ -44,6 +44,7 @@ import numpy as np
 
 from otr_gym import robot
 from otr_gym.io import save_npz
+from otr_gym.scene import robot_model
 from otr_gym.rotations import (
     angular_velocity_from_quats,
     linear_velocity_from_positions,
@@ -178,7 +179,7 @@ class Reference:
         _check_finite("<qpos>", "qpos", qpos)
         qpos = qpos.copy()
         qpos[:, 3:7] = quat_normalize(qpos[:, 3:7])
-        model = robot.load_mujoco_model(visual=False)
+        model = robot_model(visual=False)
         data = mujoco.MjData(model)
         body_ids = [model.body(n).id for n in robot.BODY_NAMES]
         T = qpos.shape[0]

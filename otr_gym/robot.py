@@ -210,13 +210,6 @@ def default_qpos() -> np.ndarray:
     return np.concatenate([[0.0, 0.0, DEFAULT_ROOT_HEIGHT_M, 1.0, 0.0, 0.0, 0.0], DEFAULT_JOINT_POS])
 
 
-def load_mujoco_model(visual: bool = True):
-    """The G1 alone as an ``mujoco.MjModel`` (for scenes with ground/objects see ``otr_gym.scene``)."""
-    from otr_gym.scene import SceneSpec, build_scene
-
-    return build_scene(SceneSpec(ground=False, visual=visual)).model
-
-
 def load_pinocchio_model():
     """Pinocchio model of the G1 MJCF; the MJCF's ``freejoint`` becomes the free-flyer root.
 

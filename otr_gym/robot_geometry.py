@@ -14,8 +14,8 @@ from functools import lru_cache
 import mujoco
 import numpy as np
 
-from otr_gym import robot
 from otr_gym.rotations import quat_to_matrix
+from otr_gym.scene import robot_model
 
 VISUAL_GROUP = 2
 COLLISION_GROUP = 3
@@ -48,7 +48,7 @@ class Capsule:
 
 @lru_cache(maxsize=1)
 def _model() -> mujoco.MjModel:
-    return robot.load_mujoco_model(visual=True)
+    return robot_model(visual=True)
 
 
 @lru_cache(maxsize=1)

@@ -135,3 +135,8 @@ def build_scene(scene: SceneSpec) -> Scene:
         _add_object(spec, obj)
     model = spec.compile()
     return Scene(spec=spec, model=model, object_names=tuple(o.name for o in scene.objects))
+
+
+def robot_model(visual: bool = True) -> mujoco.MjModel:
+    """The G1 alone as an ``mujoco.MjModel`` (no ground, no objects)."""
+    return build_scene(SceneSpec(ground=False, visual=visual)).model

@@ -31,7 +31,7 @@ from scipy.sparse.csgraph import connected_components
 from otr_gym import robot
 from otr_gym.robot import indices_by_name
 from otr_gym.rotations import matrix_to_quat, quat_conj, quat_from_rotvec, quat_mul, quat_to_matrix
-from retarget.demos import HumanSurface
+from retarget.human_surface import HumanSurface
 
 PART_NAMES: tuple[str, ...] = (
     "Pelvis", "L_Hip", "R_Hip", "Spine1", "L_Knee", "R_Knee", "Spine2", "L_Ankle", "R_Ankle",
@@ -371,8 +371,9 @@ def _g1_tpose() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     import mujoco
 
     from otr_gym.robot_geometry import posed_vertices, visual_meshes
+    from otr_gym.scene import robot_model
 
-    model = robot.load_mujoco_model(visual=False)
+    model = robot_model(visual=False)
     data = mujoco.MjData(model)
     qpos = np.zeros(7 + robot.NUM_JOINTS)
     qpos[3] = 1.0

@@ -37,7 +37,7 @@ import yaml
 from otr_gym.config import from_dict, load_yaml_mapping
 from retarget.geometry import GeometryConfig
 from retarget.residuals import InteractionConfig
-from retarget.solver import SolverConfig
+from retarget.problem import SolverConfig
 from retarget.style import StyleConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "retarget"

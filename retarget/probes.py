@@ -23,7 +23,7 @@ from scipy.spatial import ConvexHull
 
 from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
-from retarget.demos import HumanSurface
+from retarget.human_surface import HumanSurface
 from retarget.geometry import GeometryConfig, sample_surface
 from retarget.meshes import as_trimesh
 

@@ -1,4 +1,7 @@
-"""From a demonstration to the solver's immutable :class:`~retarget.solver.Problem`.
+"""The OTRetarget problem of one demonstration: its data types (:class:`SolverConfig`,
+:class:`ChannelTrack`, :class:`FreeObject`, the immutable :class:`Problem`) and how they are
+built from a :class:`~retarget.demos.Demonstration` (probes, channels, OT correspondences,
+style targets), once per clip.
 
 Modes (METHOD.md "Modes"):
 
@@ -13,8 +16,8 @@ Modes (METHOD.md "Modes"):
 
 from __future__ import annotations
 
-from dataclasses import replace
-from functools import lru_cache
+from dataclasses import dataclass, replace
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +32,15 @@ from retarget.demos import (
     InvalidDemonstrationError,
     scaled_object_positions,
 )
-from retarget.geometry import GeometryConfig, GridStack, GroundChannel, SDFChannel
+from retarget.geometry import (
+    Channel,
+    GeometryConfig,
+    GridStack,
+    GroundChannel,
+    SDFChannel,
+)
 from retarget.kinematics import NUM_LINKS, RobotKinematics
-from retarget.margins import cached_margin
+from retarget.margins import ErrorMargin, cached_margin
 from retarget.meshes import as_trimesh
 from retarget.probes import (
     ProbeSet,
@@ -42,10 +51,182 @@ from retarget.probes import (
     robot_vertex_guards,
 )
 from retarget.residuals import FIXED, InteractionConfig
-from retarget.solver import ChannelTrack, FreeObject, Problem, SolverConfig
-from retarget.style import StyleConfig, pelvis_height_ratio, robot_style_targets
+from retarget.style import (
+    StyleConfig,
+    StyleTargets,
+    pelvis_height_ratio,
+    robot_style_targets,
+)
 
 MODES = ("native", "scaled", "robot-only")
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """SQP budget, trust region and constraint settings (eq. m-qp; METHOD.md "Solver")."""
+
+    #: Iterations on the cold-started first frame and on warm-started frames (Sec. III-D).
+    first_frame_iterations: int = 50
+    iterations: int = 6
+    #: Stop when ‖δ‖∞ falls below this (Sec. III-D).
+    step_tolerance: float = 1e-4
+    #: Per-DoF trust region: 5 cm on translations, 0.10 rad on rotations and joints (eq. m-qp-tr).
+    trust_linear_m: float = 0.05
+    trust_angular_rad: float = 0.10
+    #: ε_col: non-penetration d + gᵀδ ≥ −ε_col (eq. m-qp-col).
+    penetration_tolerance_m: float = 3e-4
+    #: Our choice: pairs closer than this seed the QP's constraint rows; every other pair of the
+    #: band is checked against each QP solution and added if its linearisation is violated.
+    constraint_margin_m: float = 0.02
+    #: Our choice: pairs closer than this are checked against each QP solution (farther ones
+    #: would need one step to close more than 5 cm; the end-of-frame pass checks all pairs).
+    check_margin_m: float = 0.05
+    #: Our choice: if a frame's budget ends with a violation beyond ε_col, up to this many
+    #: restoration steps (smallest move the linearised constraints accept) follow, the k-th
+    #: within the trust region × ``feasibility_trust_scale``^k.
+    feasibility_iterations: int = 10
+    feasibility_trust_scale: float = 0.5
+    #: Trust-region update (our choice; the paper fixes the boxes): a rejected step shrinks
+    #: the per-DoF boxes to this fraction of its own extent, an accepted one that met the model
+    #: doubles them back (never above 5 cm / 0.10 rad).
+    trust_shrink: float = 0.25
+    #: Our choice: a frame also stops when the model predicts less than this relative decrease
+    #: of the merit. Measured on the OMOMO box carry: below ~1e-4 of the merit the proximity
+    #: terms' non-smoothness (witnesses jumping across box edges) dominates the model's
+    #: prediction, and the steps that follow move the robot by millimetres (1e-5 took 5.3
+    #: iterations per frame, 1e-4 4.2, with the same quality figures).
+    model_tolerance: float = 1e-4
+    #: Our choice: a frame also stops when a step predicted to gain less than this fraction of
+    #: the merit is rejected: the model is then no better than the merit's non-smoothness,
+    #: and the shrunken steps after it gained 1e-4 of the merit (median) on the box carry.
+    rejected_model_tolerance: float = 1e-3
+    #: L1 penalty (per m of violation beyond ε_col, summed over pairs) in the merit function.
+    violation_penalty: float = 100.0
+    #: b_env (our choice): per-frame deviation of an object's displacement from the demonstrated
+    #: displacement, (m, rad). 2 cm and 0.05 rad per frame at 50 fps (1 m/s, 2.5 rad/s of
+    #: velocity change): free enough to re-time a lift, too tight for a resting box to jump.
+    object_step_box: tuple[float, float] = (0.02, 0.05)
+    #: b_cor (our choice): deviation from the demonstrated pose, (m, rad). The paper's boxes
+    #: drift 3–27 cm; 0.35 m / 0.6 rad bounds that with margin.
+    object_deviation_box: tuple[float, float] = (0.35, 0.6)
+    #: Our choice: an object closer than this to a robot link is "held" and the warm start of
+    #: the next frame moves it rigidly with the robot (``warm_start``).
+    hold_distance_m: float = 0.01
+    #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
+    previous_frame_weight: float = 1.0
+    #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).
+    damping: float = 1e-6
+    #: ProxQP absolute tolerance; steps are converged at 1e-4, so 1e-7 is ample.
+    qp_eps_abs: float = 1e-7
+    #: Warm-start ProxQP from its previous result (same workspace, updated in place). Off by
+    #: default, measured: replaying 424 QPs of the OMOMO box carry, the previous result made
+    #: ProxQP slower (3.76 vs 1.04 ms per solve; median 31 vs 16 iterations, worst 680 vs 42):
+    #: the constraint rows change between iterates, so the previous duals point the wrong way.
+    #: The workspace itself is still reused (update, no re-allocation) when sizes repeat.
+    qp_warm_start: bool = False
+
+
+@dataclass(frozen=True)
+class ChannelTrack:
+    """A channel of the scene and its pose: fixed (ground, furniture, pinned objects) or free."""
+
+    name: str
+    channel: Channel
+    body: int  # FIXED or the solver body index of a free object (NUM_LINKS + i)
+    pos_w: np.ndarray  # (T, 3) pose when fixed; demonstrated pose when free
+    rot_w: np.ndarray  # (T, 3, 3)
+    lower: np.ndarray  # (3,) channel-frame bounds of the surface (−inf for the ground)
+    upper: np.ndarray  # (3,)
+    guards: np.ndarray  # (G, 3) channel frame: hull vertices and edge points (none for the ground)
+    margin: ErrorMargin | None  # grid − exact distance bound, subtracted in non-penetration rows
+
+    @property
+    def is_ground(self) -> bool:
+        return bool(self.channel.is_ground)
+
+
+@dataclass(frozen=True)
+class FreeObject:
+    """A manipulated object: a decision variable, a channel for the robot, and a probe carrier."""
+
+    name: str
+    channel: int  # index of its ChannelTrack
+    probes: np.ndarray  # (P_o, 3) object frame
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Everything precomputed for one demonstration (immutable)."""
+
+    fps: float
+    kin: RobotKinematics
+    robot: ProbeSet  # area samples (cost and constraints), link frames
+    guards: ProbeSet  # hull vertices (constraints against the ground), link frames
+    vertex_guards: ProbeSet  # mesh vertices + hull vertices (constraints against objects), link frames
+    link_center: np.ndarray  # (L, 3) link frame: bounding sphere of probes and guards
+    link_radius: np.ndarray  # (L,)
+    guard_anchor: np.ndarray  # (G,) nearest area probe (same link) of each hull guard
+    guard_anchor_d: np.ndarray  # (G,) m, their separation
+    vertex_anchor: np.ndarray  # (V,) the same for the vertex guards
+    vertex_anchor_d: np.ndarray  # (V,)
+    sampling_gap: np.ndarray  # (L,) m: largest vertex-to-nearest-probe distance of each link
+    link_grids: tuple  # per link: VoxelGrid of its signed distance (link frame), or None without a mesh
+    demo_points: ProbeSet  # src(p) of each robot probe, on its human part (part frame)
+    part_pos_w: np.ndarray  # (T, 22, 3) demonstration part positions (world)
+    part_rot_w: np.ndarray  # (T, 22, 3, 3)
+    channels: tuple[ChannelTrack, ...]
+    objects: tuple[FreeObject, ...]
+    style: StyleTargets
+    q_init: np.ndarray  # (nq,) Pinocchio configuration for the cold start
+    interaction: InteractionConfig
+    style_cfg: StyleConfig
+    solver: SolverConfig
+    band_m: float  # d̄
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.part_pos_w.shape[0])
+
+    @cached_property
+    def trust(self) -> np.ndarray:
+        """Full per-DoF trust region (n,): 5 cm on translations, 0.10 rad on rotations (eq. m-qp-tr)."""
+        cfg, nv = self.solver, self.kin.nv
+        return np.concatenate([np.full(3, cfg.trust_linear_m), np.full(nv - 3, cfg.trust_angular_rad),
+                               np.tile(np.r_[np.full(3, cfg.trust_linear_m), np.full(3, cfg.trust_angular_rad)],
+                                       len(self.objects))])
+
+    @cached_property
+    def style_bodies(self) -> np.ndarray:
+        """Bodies with a style cost: the tracked links, then the free objects."""
+        return np.concatenate([self.style.links, NUM_LINKS + np.arange(len(self.objects))])
+
+    @cached_property
+    def style_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        """(λ_pos, λ_rot) of every style body (eq. m-esty-o)."""
+        cfg, n_links, n_obj = self.style_cfg, len(self.style.links), len(self.objects)
+        return (np.r_[np.full(n_links, cfg.pos_weight), np.full(n_obj, cfg.object_pos_weight)],
+                np.r_[np.full(n_links, cfg.rot_weight), np.full(n_obj, cfg.object_rot_weight)])
+
+    @cached_property
+    def guard_reach(self) -> np.ndarray:
+        """(L,) m: the largest anchor separation among each link's hull guards."""
+        return _per_body_max(self.guards.body, self.guard_anchor_d)
+
+    @cached_property
+    def vertex_reach(self) -> np.ndarray:
+        """(L,) m: the largest anchor separation among each link's vertex guards."""
+        return _per_body_max(self.vertex_guards.body, self.vertex_anchor_d)
+
+    @property
+    def num_variables(self) -> int:
+        return self.kin.nv + 6 * len(self.objects)
+
+
+def _per_body_max(body: np.ndarray, value: np.ndarray) -> np.ndarray:
+    out = np.zeros(NUM_LINKS)
+    np.maximum.at(out, body, value)
+    return out
+
 
 
 @lru_cache(maxsize=1)

@@ -8,6 +8,7 @@ import pinocchio as pin
 import pytest
 
 from otr_gym import robot
+from otr_gym.scene import robot_model
 from otr_gym.robot_geometry import collision_capsules, visual_meshes
 from otr_gym.rotations import matrix_to_quat, quat_error_angle, quat_from_rotvec
 from otr_gym.scene import ObjectSpec, SceneSpec, TableSpec, build_scene
@@ -15,7 +16,7 @@ from otr_gym.scene import ObjectSpec, SceneSpec, TableSpec, build_scene
 
 @pytest.fixture(scope="module")
 def mj_model():
-    return robot.load_mujoco_model(visual=True)
+    return robot_model(visual=True)
 
 
 def random_qpos(rng: np.random.Generator, n: int) -> np.ndarray:

@@ -12,7 +12,10 @@ from retarget.kinematics import NUM_LINKS, RobotKinematics, segment_closest_poin
 from retarget.pipeline import RetargetConfig, retarget_demonstration
 from retarget.problem import build_problem, resample_demonstration
 from retarget.residuals import FIXED, Rows
-from retarget.solver import _model, assemble_cost, body_jacobians, frame_targets, linearise, new_state, qp_step
+from retarget.iterate import new_state
+from retarget.qp import assemble_cost, body_jacobians, model_at, qp_step
+from retarget.rows import linearise
+from retarget.targets import frame_targets
 from retarget.verify import check_reference
 
 EPS_COL = 3e-4
@@ -73,9 +76,9 @@ def test_qp_step_stays_in_the_trust_region_and_the_joint_limits():
     state.q[7:] = robot.JOINT_UPPER - 0.01  # next to the upper limits
     targets = frame_targets(problem, 0)
     lin = linearise(problem, state, targets, {})
-    from retarget.solver import FrameStats
+    from retarget.iterate import FrameStats
 
-    delta = qp_step(problem, state, targets, _model(problem, state, lin, {}), 1.0, FrameStats())
+    delta = qp_step(problem, state, targets, model_at(problem, state, lin, {}), 1.0, FrameStats())
     cfg = problem.solver
     assert np.all(np.abs(delta[:3]) <= cfg.trust_linear_m + 1e-7)
     assert np.all(np.abs(delta[3:]) <= cfg.trust_angular_rad + 1e-7)

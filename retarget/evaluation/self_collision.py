@@ -125,10 +125,11 @@ def g1_self_model(exclude_hops: int = 2) -> RobotSelfModel:
     """Visual meshes of the G1 and its non-neighbouring link pairs (see module docstring)."""
     from otr_gym import robot
     from otr_gym.robot_geometry import visual_meshes
+    from otr_gym.scene import robot_model
 
     vis = visual_meshes()
     links = tuple(b for b in robot.BODY_NAMES if b in vis)
-    model = robot.load_mujoco_model(visual=False)
+    model = robot_model(visual=False)
     ids = [model.body(n).id for n in links]
     id_to_link = {bid: i for i, bid in enumerate(ids)}
     parents = np.array([id_to_link.get(int(model.body_parentid[bid]), -1) for bid in ids])

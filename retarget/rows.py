@@ -1,0 +1,387 @@
+"""Residual and constraint rows of the QP at one iterate (the linearisation, eq. m-qp).
+
+Every row is a pair of 6-vectors φ on the two bodies it involves (``retarget.residuals.Rows``).
+Cost rows: interaction residuals of robot probes and object probes against every channel
+(eq. m-energy) and the style rows (eq. m-esty-o). Constraint rows: non-penetration of probes,
+hull and vertex guards against every channel, object guard points against the links' own
+distance grids, and capsule self-collision (eq. m-qp-col).
+
+Hot-path economy: links are culled per channel by bounding spheres before any probe is posed,
+probes are posed with one matrix product per link, and the constraint rows that seed a QP are
+the extreme points of the rows closer than a margin (``initial_constraints``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from retarget.geometry import ProximityQuery
+from retarget.iterate import SectionTimer, SolverState, channel_pose
+from retarget.kinematics import NUM_LINKS, LinkFrames
+from retarget.problem import ChannelTrack, Problem
+from retarget.residuals import (
+    PairSet,
+    Rows,
+    cross,
+    interaction_rows,
+    signed_distance_rows,
+    to_channel_frame,
+    twist_factors,
+)
+from retarget.style import pose_rows
+from retarget.targets import FrameTargets, near_channel
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    cost: Rows
+    constraints: Rows  # every surface pair in the band, then the close capsule pairs
+    surface_channel: np.ndarray  # (S,) channel code of the surface rows (``initial_constraints``)
+    margin: float  # m: surface rows closer than this may seed the first QP
+    frames: LinkFrames
+    active_pairs: int
+    min_distance: float
+    min_self_distance: float
+    counts: np.ndarray  # (L + O,) active probes per link and object at this iterate (N_ℓ)
+
+    @cached_property
+    def initial(self) -> np.ndarray:
+        """Indices of ``constraints`` put in the first QP: the surface rows chosen by
+        :func:`initial_constraints`, then every capsule row. Computed on first use: a trial
+        iterate that the trust-region test rejects never needs it."""
+        k = len(self.surface_channel)
+        c = self.constraints
+        surface = Rows(c.value[:k], c.weight[:k], c.phi[:k], c.body_a[:k], c.body_b[:k])
+        return np.concatenate([initial_constraints(surface, self.surface_channel, self.margin),
+                               np.arange(k, len(c))])
+
+
+def candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray, rot_c: np.ndarray,
+                     pos_c: np.ndarray) -> np.ndarray:
+    """(L,) links whose bounding sphere comes within the band of the channel's bounds."""
+    if track.is_ground:
+        gap = centre_w[:, 2]
+    else:
+        c = to_channel_frame(centre_w, rot_c, pos_c)
+        gap = np.linalg.norm(np.maximum(0.0, np.maximum(track.lower - c, c - track.upper)), axis=1)
+    return gap - problem.link_radius < problem.band_m
+
+
+def _take(q: ProximityQuery, index: np.ndarray) -> ProximityQuery:
+    """The answers of ``index`` (np.take: several times faster than fancy indexing of rows)."""
+    return ProximityQuery(d=np.take(q.d, index), w=np.take(q.w, index, axis=0),
+                          n=None if q.n is None else np.take(q.n, index, axis=0),
+                          grad_d=np.take(q.grad_d, index, axis=0), dw_dx=np.take(q.dw_dx, index, axis=0),
+                          in_band=np.take(q.in_band, index))
+
+
+def rows_take(rows: Rows, index: np.ndarray) -> Rows:
+    return Rows(np.take(rows.value, index), np.take(rows.weight, index), np.take(rows.phi, index, axis=0),
+                np.take(rows.body_a, index), np.take(rows.body_b, index))
+
+
+#: Rows are grouped by the nearest of these 6 directions to their distance gradient; each group
+#: keeps its extreme points under tilts in 8 directions perpendicular to the group's gradient.
+_BINS = np.concatenate([np.eye(3), -np.eye(3)])
+_ANGLES = np.arange(8) * (np.pi / 4)
+
+
+def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad: float = 0.2) -> np.ndarray:
+    """Rows to put in the first QP: among those closer than ``margin``, per group (body,
+    channel, binned gradient a), the rows that are smallest after a small rotation ω of the
+    body perpendicular to a (|ω| = ``tilt_rad``, 8 directions, and ω = 0).
+
+    A row reads d_p + a·v + ω·((x_p − o) × a). Over a group a is nearly constant, so the row
+    that binds first for a step (v, ω) is the minimiser of d_p + ω·φ_p[3:6]: an extreme point
+    of the group (for a plane, a vertex of the convex hull); ω along a does not change it. The
+    others are implied to first order; ``qp_step`` checks every candidate row after each QP and
+    adds any violated one, so this choice affects speed, never feasibility.
+    """
+    close = np.flatnonzero(rows.value < margin)
+    if len(close) == 0:
+        return close
+    a = rows.phi[close, :3]
+    key = (rows.body_a[close] * 64 + channel[close]) * 32 + np.argmax(a @ _BINS.T, axis=1)
+    order = np.argsort(key, kind="stable")
+    starts = np.flatnonzero(np.concatenate([[True], np.diff(key[order]) != 0]))
+    counts = np.diff(np.concatenate([starts, [len(close)]]))
+    mean_a = np.add.reduceat(a[order], starts, axis=0)
+    mean_a /= np.maximum(np.linalg.norm(mean_a, axis=1, keepdims=True), 1e-12)
+    t1 = cross(mean_a, np.eye(3)[np.argmin(np.abs(mean_a), axis=1)])
+    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
+    t2 = cross(mean_a, t1)
+    tilts = (np.cos(_ANGLES)[None, :, None] * t1[:, None] + np.sin(_ANGLES)[None, :, None] * t2[:, None])  # (G, 8, 3)
+    moment = rows.phi[close[order], 3:6]
+    scores = rows.value[close[order], None] + tilt_rad * np.einsum("kj,kdj->kd", moment,
+                                                                   np.repeat(tilts, counts, axis=0))
+    scores = np.concatenate([rows.value[close[order], None], scores], axis=1)  # (k, 9)
+    best = np.minimum.reduceat(scores, starts, axis=0)
+    extreme = (scores <= np.repeat(best, counts, axis=0)).any(axis=1)
+    return np.sort(close[order[extreme]])
+
+
+def _distance_block(track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, x_w: np.ndarray, x_c: np.ndarray,
+                    body: np.ndarray, origin: np.ndarray, d: np.ndarray, grad_c: np.ndarray) -> Rows:
+    """Non-penetration rows of points against a channel: the grid distance minus the grid's
+    measured error bound there (``retarget.margins``), so that the exact surface is respected."""
+    value = d - track.margin.at(x_c) if track.margin is not None else d
+    return signed_distance_rows(value, grad_c, x_w, origin, body, track.body, rot_c, pos_c)
+
+
+@dataclass
+class _ConstraintRows:
+    """Constraint rows collected per block, each with its channel code (``initial_constraints``)."""
+
+    rows: list[Rows]
+    channel: list[np.ndarray]
+
+    def add(self, rows: Rows, channel: int) -> None:
+        self.rows.append(rows)
+        self.channel.append(np.full(len(rows), channel))
+
+
+@dataclass(frozen=True)
+class _RobotPairs:
+    """Active robot probe–channel pairs of one channel at the iterate."""
+
+    channel: int
+    rot_c: np.ndarray
+    pos_c: np.ndarray
+    probes: np.ndarray  # (k,) indices into ``Problem.robot``
+    x_w: np.ndarray  # (k, 3)
+    x_c: np.ndarray  # (k, 3)
+    query: ProximityQuery
+
+
+def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, fr: LinkFrames,
+                   centre_w: np.ndarray, c: int, con: _ConstraintRows) -> tuple[_RobotPairs | None, np.ndarray]:
+    """Robot probes against channel c: the active pairs (cost), their non-penetration rows and
+    those of the hull/vertex guards that can come within the margin. Returns the pairs and each
+    link's smallest probe distance (the band where not queried)."""
+    band, margin, check = problem.band_m, problem.solver.constraint_margin_m, problem.solver.check_margin_m
+    track = problem.channels[c]
+    rot_c, pos_c = channel_pose(state, track, targets.t)
+    near_links = candidate_links(problem, track, centre_w, rot_c, pos_c)
+    # area probes: near links, and links with a probe in contact range in the demonstration
+    links = np.flatnonzero(near_links | targets.robot_links[c])
+    idx, x_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
+    # distance of every area probe, or a lower bound (the band) where not queried
+    probe_d = np.full(len(problem.robot), band)
+    pairs = None
+    if len(idx):
+        x_c = to_channel_frame(x_w, rot_c, pos_c)
+        demo_active = targets.robot_active[c][idx]
+        sel = np.flatnonzero(near_channel(track, x_c, band) | demo_active)
+        q = track.channel.query(np.take(x_c, sel, axis=0), normals=False)
+        probe_d[idx[sel]] = q.d
+        active = np.flatnonzero(q.in_band | demo_active[sel])
+        a = sel[active]
+        pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), np.take(x_c, a, axis=0),
+                            _take(q, active))
+        # Against the ground the hull vertices (guards) imply every area probe: skip those.
+        if not track.is_ground:
+            ib = np.flatnonzero(q.in_band & (q.d < check))
+            pts, body = sel[ib], problem.robot.body[idx[sel[ib]]]
+            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, pts, axis=0), np.take(x_c, pts, axis=0), body,
+                                    np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0)), c)
+    link_min = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
+    # Guard points: the distance field is 1-Lipschitz, so a guard is at least as far as its
+    # nearest area probe (its anchor) minus their separation; only guards whose bound is
+    # within the margin can be close enough to matter, the rest are provably clear. A link
+    # whose closest probe, less its farthest anchor separation, is beyond the margin has
+    # no such guard: its guards are not even looked at.
+    guards, anchor, anchor_d, reach = ((problem.guards, problem.guard_anchor, problem.guard_anchor_d,
+                                        problem.guard_reach) if track.is_ground
+                                       else (problem.vertex_guards, problem.vertex_anchor, problem.vertex_anchor_d,
+                                             problem.vertex_reach))
+    gi = guards.indices_of(np.flatnonzero(near_links & (link_min - reach < margin)))
+    gi = gi[probe_d[anchor[gi]] - anchor_d[gi] < margin]
+    if len(gi):
+        gb = guards.body[gi]
+        g_w = guards.posed_index(gi, fr.rot, fr.pos)
+        g_c = to_channel_frame(g_w, rot_c, pos_c)
+        d, grad, in_band = track.channel.distance(g_c)
+        ib = np.flatnonzero(in_band & (d < check))
+        body = gb[ib]
+        con.add(_distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0), body,
+                                np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0)), c)
+    return pairs, link_min
+
+
+def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: list[_RobotPairs],
+                counts: np.ndarray | None) -> tuple[list[Rows], int, np.ndarray]:
+    """Interaction rows of the robot probes (eq. m-energy), f_ℓ/N_ℓ with N_ℓ the distinct active
+    probes of link ℓ over all channels (or ``counts``). Returns rows, pair count, N_ℓ as counted."""
+    active_any = np.zeros(len(problem.robot), dtype=bool)
+    for p in pairs:
+        active_any[p.probes] = True
+    link_counts = np.bincount(problem.robot.body[active_any], minlength=NUM_LINKS)
+    n_active = link_counts if counts is None else counts[:NUM_LINKS]
+    norm_link = problem.interaction.link_weight / np.maximum(n_active, 1)
+    cost = []
+    for p in pairs:
+        track = problem.channels[p.channel]
+        body = problem.robot.body[p.probes]
+        ps = PairSet(p.x_w, p.x_c, np.take(fr.pos, body, axis=0), body, track.body, p.rot_c, p.pos_c, p.query,
+                     targets.robot[p.channel].take(p.probes), norm_link[body])
+        cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
+    return cost, sum(len(p.probes) for p in pairs), link_counts
+
+
+def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i: int, count: int | None,
+                 con: _ConstraintRows) -> tuple[list[Rows], int, int]:
+    """Free object i's probes against every other channel: interaction rows (object weights),
+    non-penetration rows of its probes and of its hull guards. Returns rows, pair count and
+    its active probe count."""
+    band, check = problem.band_m, problem.solver.check_margin_m
+    obj = problem.objects[i]
+    body = NUM_LINKS + i
+    o_w = obj.probes @ state.obj_rot[i].T + state.obj_pos[i]
+    own = problem.channels[obj.channel]
+    pairs = []
+    for c, track in enumerate(problem.channels):
+        if c == obj.channel:
+            continue
+        rot_c, pos_c = channel_pose(state, track, targets.t)
+        o_c = to_channel_frame(o_w, rot_c, pos_c)
+        demo_active = targets.objects_active[i][c]
+        sel = np.flatnonzero(near_channel(track, o_c, band) | demo_active)
+        if len(sel) == 0:
+            continue
+        q = track.channel.query(np.take(o_c, sel, axis=0), normals=False)
+        active = np.flatnonzero(q.in_band | demo_active[sel])
+        pairs.append((c, track, rot_c, pos_c, sel[active], _take(q, active)))
+        ib = np.flatnonzero(q.in_band & (q.d < check))
+        pts = sel[ib]
+        con.add(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
+                                np.full(len(ib), body), np.broadcast_to(state.obj_pos[i], (len(ib), 3)),
+                                q.d[ib], np.take(q.grad_d, ib, axis=0)), c)
+        # the object's own hull guards against the ground, furniture and other objects
+        g_w = own.guards @ state.obj_rot[i].T + state.obj_pos[i]
+        g_c = to_channel_frame(g_w, rot_c, pos_c)
+        gs = np.flatnonzero(near_channel(track, g_c, check))
+        if len(gs):
+            d, grad, in_band = track.channel.distance(g_c[gs])
+            gb = np.flatnonzero(in_band & (d < check))
+            con.add(_distance_block(track, rot_c, pos_c, g_w[gs[gb]], g_c[gs[gb]], np.full(len(gb), body),
+                                    np.broadcast_to(state.obj_pos[i], (len(gb), 3)), d[gb], grad[gb]), c)
+    active_any = np.zeros(len(obj.probes), dtype=bool)
+    for pair in pairs:
+        active_any[pair[4]] = True
+    n_counted = int(active_any.sum())
+    weight = problem.interaction.link_weight / max(n_counted if count is None else count, 1)
+    cost, total = [], 0
+    for c, track, rot_c, pos_c, sel, q in pairs:
+        ps = PairSet(o_w[sel], to_channel_frame(o_w[sel], rot_c, pos_c),
+                     np.broadcast_to(state.obj_pos[i], (len(sel), 3)), np.full(len(sel), body), track.body,
+                     rot_c, pos_c, q, targets.objects[i][c].take(sel), np.full(len(sel), weight))
+        cost.append(interaction_rows(ps, track.channel, problem.interaction.object_weights, problem.interaction))
+        total += len(sel)
+    return cost, total, n_counted
+
+
+def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timings: dict[str, float],
+              counts: np.ndarray | None = None) -> Linearisation:
+    """All rows of the QP at the current iterate.
+
+    ``counts`` (L + O,) fixes N_ℓ, the active probe count of each link and object, instead of
+    counting at this iterate: ``solve_frame`` counts once per frame, so that E stays a smooth
+    function of the iterate within the frame (a count that jumps by one as a probe crosses d̄
+    rescales the whole link's term, and the trust-region test would read that as model error).
+    """
+    tm = SectionTimer(timings)
+    margin, check = problem.solver.constraint_margin_m, problem.solver.check_margin_m
+    fr = problem.kin.frames(state.data, state.q)
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    tm.lap("kinematics")
+
+    con = _ConstraintRows([], [])
+    robot_pairs, link_min = [], np.full((len(problem.channels), NUM_LINKS), np.inf)
+    for c in range(len(problem.channels)):
+        pairs, link_min[c] = _robot_channel(problem, state, targets, fr, centre_w, c, con)
+        if pairs is not None:
+            robot_pairs.append(pairs)
+    tm.lap("robot_channels")
+
+    cost, total_pairs, link_counts = _robot_cost(problem, targets, fr, robot_pairs, counts)
+    tm.lap("robot_rows")
+
+    object_counts = []
+    for i in range(len(problem.objects)):
+        rows, pairs, n = _object_rows(problem, state, targets, i, None if counts is None else int(counts[NUM_LINKS + i]),
+                                      con)
+        cost += rows
+        total_pairs += pairs
+        object_counts.append(n)
+    tm.lap("object_rows")
+
+    for c, track in enumerate(problem.channels):
+        if track.is_ground or len(track.guards) == 0:
+            continue
+        rot_c, pos_c = channel_pose(state, track, targets.t)
+        # a link can hold an object's edge only where its own surface, hence an area probe
+        # within the link's sampling gap, comes close to the object
+        links = np.flatnonzero(link_min[c] < problem.sampling_gap + margin)
+        con.add(object_guard_rows(problem, fr, links, track, rot_c, pos_c, check), len(problem.channels) + c)
+    tm.lap("object_guards")
+
+    surface = Rows.concat(con.rows)
+    min_dist = float(surface.value.min()) if len(surface) else np.inf
+    surface_channel = np.concatenate(con.channel).astype(np.intp) if con.channel else np.zeros(0, np.intp)
+    tm.lap("constraint_selection")
+
+    capsules = self_collision_rows(problem, fr, margin)
+    min_self = float(capsules.value.min()) if len(capsules) else np.inf
+    tm.lap("self_collision")
+
+    # E_sty,r and E_sty,o in one batch: the tracked links, then the free objects
+    links = problem.style.links
+    pos_weight, rot_weight = problem.style_weights
+    cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]), np.concatenate([fr.rot[links], state.obj_rot]),
+                          targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
+    tm.lap("style_rows")
+    return Linearisation(Rows.concat(cost), Rows.concat([surface, capsules]), surface_channel, margin, fr,
+                         total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]))
+
+
+def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
+                      rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+    """Distances of an object's guard points (corners, edge points) to every robot link closer
+    than ``reach``, from each link's own distance grid (link frame), in one stacked query.
+
+    A box edge pressed into an arm lies between the arm's probes; seen from the arm's distance
+    field it is the deepest point. Rows, grouped by link: body A the object (FIXED when
+    pinned), body B the link.
+    """
+    grids = problem.link_grids
+    links = links[grids.has_grid[links]]
+    g_w = track.guards @ rot_c.T + pos_c
+    centre_w = np.einsum("lij,lj->li", fr.rot[links], problem.link_center[links]) + fr.pos[links]
+    gap = np.linalg.norm(centre_w[:, None, :] - g_w[None], axis=2) - problem.link_radius[links, None]  # (l, G)
+    pair_link, guard = np.nonzero(gap < reach)
+    if len(guard) == 0:
+        return Rows.empty()
+    link = links[pair_link]
+    x = g_w[guard]
+    local = np.einsum("kji,kj->ki", fr.rot[link], x - fr.pos[link])  # Rᵀ(x − o)
+    d, grad, inside = grids.distance(local, link)
+    keep = np.flatnonzero(inside & (d < reach))
+    link, x = link[keep], x[keep]
+    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[keep])  # ∇d in the world
+    phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
+    return Rows(d[keep], np.ones(len(x)), phi, np.full(len(x), track.body), link)
+
+
+def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:
+    """Capsule pairs closer than ``margin``: d + n·(ẋ_a − ẋ_b) rows (n from b to a)."""
+    sc = problem.kin.self_collision.distances(fr, within=margin)
+    close = sc.dist < margin
+    la, lb, n = sc.link_a[close], sc.link_b[close], sc.normal[close]
+    # the distance's rate is n·(ẋ_a − ẋ_b) at the surface points (the radii lie along n)
+    phi = np.concatenate([n, cross(sc.point_a[close] - fr.pos[la], n), -n, -cross(sc.point_b[close] - fr.pos[lb], n)],
+                         axis=1)
+    return Rows(sc.dist[close], np.ones(len(la)), phi, la, lb)
+

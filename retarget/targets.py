@@ -1,0 +1,93 @@
+"""Demonstrated quantities of one frame (paper Sec. III-B): the desired proximity triples of
+every robot probe, read through its OT source point src(p) on the human, and of every free
+object's probes, plus the frame's style targets. Computed once per frame, before its SQP
+iterations, and read by every iterate."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from retarget.kinematics import NUM_LINKS
+from retarget.problem import ChannelTrack, Problem
+from retarget.residuals import Triples, to_channel_frame
+
+
+@dataclass(frozen=True)
+class FrameTargets:
+    """Demonstrated quantities of frame t, computed once before its SQP iterations."""
+
+    t: int
+    robot: tuple[Triples, ...]  # per channel, for every robot probe (d̂ = d̄ when far)
+    robot_active: tuple[np.ndarray, ...]  # per channel (P,) bool: d̂ < d̄
+    robot_links: tuple[np.ndarray, ...]  # per channel (L,) bool: links with an active probe
+    objects: tuple[tuple[Triples | None, ...], ...]  # per free object, per channel (None: own channel)
+    objects_active: tuple[tuple[np.ndarray | None, ...], ...]
+    obj_pos: np.ndarray  # (O, 3) demonstrated object poses
+    obj_rot: np.ndarray  # (O, 3, 3)
+    style_pos: np.ndarray  # (S + O, 3) style targets of ``Problem.style_bodies``
+    style_rot: np.ndarray  # (S + O, 3, 3)
+
+
+def near_channel(track: ChannelTrack, x_c: np.ndarray, reach: float) -> np.ndarray:
+    """Points (channel frame) inside the channel's bounds grown by ``reach``."""
+    if track.is_ground:
+        return x_c[:, 2] < reach
+    return np.all((x_c > track.lower - reach) & (x_c < track.upper + reach), axis=1)
+
+
+def _far_triples(n: int, band: float) -> Triples:
+    return Triples(np.full(n, band), np.zeros((n, 3)), np.zeros((n, 3)))
+
+
+def _demo_triples(track: ChannelTrack, x_w: np.ndarray, rot: np.ndarray, pos: np.ndarray,
+                  band: float) -> tuple[Triples, np.ndarray]:
+    """Triples of demonstrated points against a channel; only points near it are queried."""
+    x_c = to_channel_frame(x_w, rot, pos)
+    near = np.flatnonzero(near_channel(track, x_c, band))
+    out = _far_triples(len(x_w), band)
+    if len(near):
+        # once per frame: the exact witness where the grid's blend is unreliable (geometry doc)
+        q = track.channel.query(x_c[near], exact_witness=True)
+        out.d[near], out.w[near], out.n[near] = q.d, q.w, q.n
+        # ŵ's place in the geodesic table, for the r^x rows of every iterate of the frame
+        hat = track.channel.geodesic_weights(q.w)
+        if hat is not None:
+            geodesic = tuple(np.zeros((len(x_w),) + h.shape[1:], h.dtype) for h in hat)
+            for full, part in zip(geodesic, hat):
+                full[near] = part
+            out = Triples(out.d, out.w, out.n, geodesic)
+    return out, out.d < band
+
+
+def frame_targets(problem: Problem, t: int) -> FrameTargets:
+    """Demonstrated triples of robot probes (through src(p)) and object probes at frame t."""
+    band = problem.band_m
+    human_w = problem.demo_points.posed(problem.part_rot_w[t], problem.part_pos_w[t])
+    robot_t, robot_a, robot_l = [], [], []
+    for track in problem.channels:
+        tri, active = _demo_triples(track, human_w, track.rot_w[t], track.pos_w[t], band)
+        robot_t.append(tri)
+        robot_a.append(active)
+        robot_l.append(np.bincount(problem.robot.body[active], minlength=NUM_LINKS) > 0)
+    obj_t, obj_a = [], []
+    for obj in problem.objects:
+        own = problem.channels[obj.channel]
+        x_w = obj.probes @ own.rot_w[t].T + own.pos_w[t]
+        per_t, per_a = [], []
+        for c, track in enumerate(problem.channels):
+            if c == obj.channel:
+                per_t.append(None)
+                per_a.append(None)
+                continue
+            tri, active = _demo_triples(track, x_w, track.rot_w[t], track.pos_w[t], band)
+            per_t.append(tri)
+            per_a.append(active)
+        obj_t.append(tuple(per_t))
+        obj_a.append(tuple(per_a))
+    obj_pos = np.array([problem.channels[o.channel].pos_w[t] for o in problem.objects]).reshape(-1, 3)
+    obj_rot = np.array([problem.channels[o.channel].rot_w[t] for o in problem.objects]).reshape(-1, 3, 3)
+    return FrameTargets(t, tuple(robot_t), tuple(robot_a), tuple(robot_l), tuple(obj_t), tuple(obj_a),
+                        obj_pos, obj_rot, np.concatenate([problem.style.pos_w[t], obj_pos]),
+                        np.concatenate([problem.style.rot_w[t], obj_rot]))
