@@ -44,13 +44,13 @@ import numpy as np
 
 from otr_gym import robot
 from otr_gym.io import save_npz
-from otr_gym.scene import robot_model
 from otr_gym.rotations import (
     angular_velocity_from_quats,
     linear_velocity_from_positions,
     quat_normalize,
     quat_slerp,
 )
+from otr_gym.scene import robot_model
 
 QUAT_UNIT_TOL = 1e-3
 REQUIRED_KEYS = ("fps", "joint_pos", "joint_vel", "body_pos_w", "body_quat_w", "body_lin_vel_w", "body_ang_vel_w")

@@ -14,6 +14,7 @@ from functools import lru_cache
 import mujoco
 import numpy as np
 
+from otr_gym import robot
 from otr_gym.rotations import quat_to_matrix
 from otr_gym.scene import robot_model
 
@@ -28,6 +29,7 @@ class LinkMesh:
     body: str
     vertices: np.ndarray  # (V, 3) m, body frame
     faces: np.ndarray  # (F, 3) int
+    mesh_names: tuple[str, ...] = ()  # the MJCF meshes merged into it
 
     @property
     def area_m2(self) -> float:
@@ -56,6 +58,7 @@ def visual_meshes() -> dict[str, LinkMesh]:
     """Body name -> merged visual mesh in the body frame, for every G1 body with one."""
     m = _model()
     parts: dict[str, tuple[list, list, int]] = {}
+    names: dict[str, list[str]] = {}
     for g in range(m.ngeom):
         if int(m.geom_type[g]) != int(mujoco.mjtGeom.mjGEOM_MESH) or m.geom_group[g] != VISUAL_GROUP:
             continue
@@ -69,8 +72,23 @@ def visual_meshes() -> dict[str, LinkMesh]:
         vs.append(verts)
         fs.append(faces + n)
         parts[body] = (vs, fs, n + nv)
-    return {b: LinkMesh(b, np.concatenate(vs).astype(np.float64), np.concatenate(fs).astype(np.int64))
+        names.setdefault(body, []).append(m.mesh(mid).name)
+    return {b: LinkMesh(b, np.concatenate(vs).astype(np.float64), np.concatenate(fs).astype(np.int64), tuple(names[b]))
             for b, (vs, fs, _) in parts.items()}
+
+
+@lru_cache(maxsize=1)
+def surface_margin_m() -> np.ndarray:
+    """(L,) m per G1 body (BODY_NAMES order): how far Unitree's original surface can lie from
+    the shipped visual mesh (the largest error of its meshes, ``otr_gym.true_surface``), 0 for
+    bodies without a mesh. Adding it to a clearance makes a check conservative for the true
+    surface."""
+    from otr_gym.true_surface import surface_error_m
+
+    error = surface_error_m()
+    meshes = visual_meshes()
+    return np.array([max((error[n] for n in meshes[b].mesh_names), default=0.0) if b in meshes else 0.0
+                     for b in robot.BODY_NAMES])
 
 
 @lru_cache(maxsize=1)

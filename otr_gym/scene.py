@@ -9,6 +9,7 @@ scene pieces are prefixed (``ground/``, ``table/``).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -64,6 +65,10 @@ class Scene:
 
 def _robot_spec(visual: bool) -> mujoco.MjSpec:
     spec = mujoco.MjSpec.from_file(str(G1_MJCF))
+    # $OTR_G1_MESH_DIR swaps the visual meshes for same-named files elsewhere: Unitree's
+    # originals, to judge a reference on the true surface (otr_gym.true_surface)
+    if os.environ.get("OTR_G1_MESH_DIR"):
+        spec.meshdir = os.environ["OTR_G1_MESH_DIR"]
     if not visual:
         for geom in list(spec.geoms):
             if geom.type == mujoco.mjtGeom.mjGEOM_MESH and geom.contype == 0 and geom.conaffinity == 0:

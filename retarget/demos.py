@@ -380,6 +380,11 @@ def _amass_rows(origin: str, data: dict) -> tuple[np.ndarray, np.ndarray, str]:
     return root, body.reshape(-1, 21, 3), model
 
 
+#: The pelvis joint of SMPL's template (model frame, y-up, m): J₀ of the mean shape, which
+#: SMPL-H shares. AMASS SMPL-H ``trans`` places this joint (plus its shape offset).
+SMPL_TEMPLATE_PELVIS = np.array([-0.00179506, -0.22333345, 0.02821913])
+
+
 def _read_amass(path: Path, data: dict, ground: bool) -> Demonstration:
     from retarget.human import PART_NAMES, PART_PARENTS, HumanModel  # human.py builds on the types above
 
@@ -400,9 +405,15 @@ def _read_amass(path: Path, data: dict, ground: bool) -> Demonstration:
     if frames < 1:
         _fail(origin, "no frames")
     model = HumanModel(betas[:10])
-    # MoSh++ turns the body about the pelvis; HumanModel.pose turns it about the origin
+    # MoSh++ turns the body about the pelvis, placed at trans + J₀(β) of the file's own body
+    # model; HumanModel.pose turns it about the origin
     pelvis_rest = model.rest_joints[0]
-    transl = trans + pelvis_rest - np.einsum("tij,j->ti", quat_to_matrix(quat_from_rotvec(root)), pelvis_rest)
+    pelvis_file = pelvis_rest
+    if body_model == "smplh":
+        # mannequin-x's pelvis is SMPL-X's; an SMPL-H file's trans is for SMPL's, 11 cm away (model
+        # y-up frame: −0.22 vs −0.35 m). Take SMPL's template pelvis and mannequin-x's shape offset.
+        pelvis_file = SMPL_TEMPLATE_PELVIS + pelvis_rest - HumanModel(np.zeros(10)).rest_joints[0]
+    transl = trans + pelvis_file - np.einsum("tij,j->ti", quat_to_matrix(quat_from_rotvec(root)), pelvis_rest)
     part_pos, part_quat = model.pose(root, transl, body)
     shift = _ground_shift(model.surface, part_pos, part_quat) if ground else 0.0
     part_pos[..., 2] += shift

@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from otr_gym.io import save_npz
-from retarget.meshes import InvalidMeshError, TriMesh, as_trimesh, check_encloses_volume, load_mesh, signed_distance
+from retarget.meshes import InvalidMeshError, TriMesh, load_mesh, object_mesh, signed_distance
 
 #: Bumped whenever the content or layout of cached grids changes.
 _GRID_FORMAT = 2
@@ -545,10 +545,10 @@ class SDFChannel:
 
         ``density_per_m2`` of the surface cloud defaults to the object density (use
         ``cfg.robot_density_per_m2`` for robot links). Raises InvalidMeshError naming the mesh
-        when it has invalid arrays or encloses no volume.
+        when it has invalid arrays; a surface that encloses no volume becomes a shell
+        (``retarget.meshes.object_mesh``, with a warning).
         """
-        mesh = as_trimesh(mesh.vertices, mesh.faces, getattr(mesh, "name", "<mesh>"))
-        check_encloses_volume(mesh)
+        mesh = object_mesh(mesh.vertices, mesh.faces, getattr(mesh, "name", "<mesh>"))
         density = cfg.object_density_per_m2 if density_per_m2 is None else float(density_per_m2)
         surface = sample_surface(mesh, density, seed)
         n_geo = int(np.clip(len(surface), cfg.geodesic_min_samples, cfg.geodesic_max_samples))

@@ -26,6 +26,35 @@ from otr_gym.robot_geometry import collision_capsules
 NUM_LINKS = len(robot.BODY_NAMES)
 
 
+def tree_distance(parents: np.ndarray) -> np.ndarray:
+    """(L, L) number of joints between links of a kinematic tree (parents[i] < 0 at roots)."""
+    L = len(parents)
+    depth = np.zeros(L, dtype=np.int64)
+    chains = []
+    for i in range(L):
+        chain = [i]
+        while parents[chain[-1]] >= 0:
+            chain.append(int(parents[chain[-1]]))
+        chains.append(chain)
+        depth[i] = len(chain) - 1
+    dist = np.zeros((L, L), dtype=np.int64)
+    for i in range(L):
+        for j in range(L):
+            common = set(chains[i]) & set(chains[j])
+            lca_depth = max(depth[k] for k in common) if common else -1
+            dist[i, j] = depth[i] + depth[j] - 2 * lca_depth if common else L
+    return dist
+
+
+def link_pairs_beyond(parents: np.ndarray, hops: int = 2) -> np.ndarray:
+    """(P, 2) link pairs i < j more than ``hops`` joints apart in the tree: the pairs whose
+    meshes must not overlap (closer ones interpenetrate around their joints by design)."""
+    dist = tree_distance(parents)
+    i, j = np.triu_indices(len(parents), k=1)
+    keep = dist[i, j] > hops
+    return np.stack([i[keep], j[keep]], axis=1)
+
+
 @dataclass(frozen=True)
 class LinkFrames:
     """World poses and LOCAL_WORLD_ALIGNED Jacobians of the 30 links at one configuration."""

@@ -3,14 +3,20 @@
 Scanned objects are rarely watertight (OMOMO's large box has holes), so the sign of the
 distance comes from the generalised (fast) winding number of libigl, which stays clean
 inside/outside across holes; the magnitude and closest point are exact point–triangle
-queries (AABB tree). A mesh whose winding number encloses nothing (an open sheet, a soup
-of triangles) cannot give a sign and is rejected with an error naming it.
+queries (AABB tree).
+
+A surface whose winding number encloses nothing (an open sheet, a soup of triangles, the
+thin-walled containers of OMOMO's scans) has no inside to take a sign from: an object mesh
+(``object_mesh``) like that is treated, with a warning, as a **shell** of ``SHELL_THICKNESS_M``
+around its triangles: its signed distance is the unsigned distance minus half the thickness,
+so a point on the triangles is 5 mm deep and one 5 mm away touches.
 """
 
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import igl
@@ -18,6 +24,8 @@ import numpy as np
 
 #: Winding-number band treated as "ambiguous" (neither clearly inside nor outside).
 _AMBIGUOUS = (0.2, 0.8)
+#: Thickness (m) given to an object surface that encloses no volume (a shell; see the module doc).
+SHELL_THICKNESS_M = 0.01
 
 
 class InvalidMeshError(ValueError):
@@ -31,13 +39,17 @@ class TriMesh:
     vertices: np.ndarray
     faces: np.ndarray
     name: str = "<mesh>"
+    #: > 0: the surface is a shell of this thickness (m) around its triangles (no inside of its own)
+    shell_m: float = 0.0
 
     @property
     def content_hash(self) -> str:
-        """SHA-256 of the geometry: cache key that survives renames and moves."""
+        """SHA-256 of the geometry (and shell thickness): cache key that survives renames and moves."""
         h = hashlib.sha256()
         h.update(np.ascontiguousarray(self.vertices, np.float64).tobytes())
         h.update(np.ascontiguousarray(self.faces, np.int64).tobytes())
+        if self.shell_m > 0.0:
+            h.update(np.float64(self.shell_m).tobytes())
         return h.hexdigest()
 
     @property
@@ -89,34 +101,54 @@ def winding_number(mesh: TriMesh, points: np.ndarray) -> np.ndarray:
     return igl.fast_winding_number(mesh.vertices, mesh.faces, np.asarray(points, np.float64))
 
 
-def check_encloses_volume(mesh: TriMesh, samples: int = 4096, seed: int = 0) -> None:
-    """Reject meshes whose inside/outside cannot be told apart.
+def enclosure_problem(mesh: TriMesh, samples: int = 4096, seed: int = 0) -> str | None:
+    """Why the inside/outside of ``mesh`` cannot be told apart, or None when it can (cached
+    per geometry: one check per mesh and process).
 
     Samples the bounding box: a usable surface has points clearly inside (winding ≥ 0.8)
     and few ambiguous ones. An open sheet or triangle soup has none inside.
     """
-    lo, hi = mesh.bounds
-    pts = np.random.default_rng(seed).uniform(lo, hi, size=(samples, 3))
-    w = np.abs(winding_number(mesh, pts))
-    inside = np.mean(w >= _AMBIGUOUS[1])
-    ambiguous = np.mean((w > _AMBIGUOUS[0]) & (w < _AMBIGUOUS[1]))
-    if inside < 0.01:
-        raise InvalidMeshError(f"{mesh.name}: the surface encloses no volume (winding number never reaches "
-                               f"{_AMBIGUOUS[1]}); an open sheet or triangle soup has no inside")
-    if ambiguous > 0.2:
-        raise InvalidMeshError(f"{mesh.name}: inside/outside is ambiguous for {ambiguous:.0%} of its bounding box "
-                               f"(winding number between {_AMBIGUOUS[0]} and {_AMBIGUOUS[1]})")
+    key = (mesh.content_hash, samples, seed)
+    if key not in _ENCLOSURE:
+        lo, hi = mesh.bounds
+        pts = np.random.default_rng(seed).uniform(lo, hi, size=(samples, 3))
+        w = np.abs(winding_number(mesh, pts))
+        inside = np.mean(w >= _AMBIGUOUS[1])
+        ambiguous = np.mean((w > _AMBIGUOUS[0]) & (w < _AMBIGUOUS[1]))
+        _ENCLOSURE[key] = (f"the surface encloses no volume (winding number never reaches {_AMBIGUOUS[1]})"
+                           if inside < 0.01 else
+                           f"inside/outside is ambiguous for {ambiguous:.0%} of its bounding box (winding number "
+                           f"between {_AMBIGUOUS[0]} and {_AMBIGUOUS[1]})" if ambiguous > 0.2 else None)
+    return _ENCLOSURE[key]
+
+
+_ENCLOSURE: dict[tuple[str, int, int], str | None] = {}
+
+
+def object_mesh(vertices, faces, name: str = "<mesh>") -> TriMesh:
+    """An object's surface, validated (``as_trimesh``); one that encloses no volume becomes a
+    shell of ``SHELL_THICKNESS_M`` (see the module doc), with a warning naming it."""
+    mesh = as_trimesh(vertices, faces, name)
+    problem = enclosure_problem(mesh)
+    if problem is None:
+        return mesh
+    warnings.warn(f"{name}: {problem}; treated as a shell {1000 * SHELL_THICKNESS_M:.0f} mm thick "
+                  "(signed distance = unsigned distance − half the thickness)", UserWarning, stacklevel=2)
+    return replace(mesh, shell_m=SHELL_THICKNESS_M)
 
 
 def signed_distance(mesh: TriMesh, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact signed distance of ``points`` (N, 3) to the mesh (negative inside).
 
     Returns (d (N,), closest surface point (N, 3), closest face index (N,)), all in the
-    mesh frame. The sign uses the fast winding number (robust to holes).
+    mesh frame. The sign uses the fast winding number (robust to holes); a shell's distance is
+    the unsigned one less half its thickness (the closest point is then on its mid-surface).
     """
     pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
     # igl.signed_distance with a winding-number sign returns magnitudes off by ~0.1 % (up to
     # 0.8 mm on the large box): take the exact AABB distance and only the sign from the winding number.
     sq, face, closest = igl.point_mesh_squared_distance(pts, mesh.vertices, mesh.faces)
+    if mesh.shell_m > 0.0:
+        return np.sqrt(sq) - 0.5 * mesh.shell_m, closest, face
     inside = np.abs(winding_number(mesh, pts)) > 0.5
     return np.where(inside, -1.0, 1.0) * np.sqrt(sq), closest, face

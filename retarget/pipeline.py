@@ -36,8 +36,9 @@ import yaml
 
 from otr_gym.config import from_dict, load_yaml_mapping
 from retarget.geometry import GeometryConfig
-from retarget.residuals import InteractionConfig
 from retarget.problem import SolverConfig
+from retarget.residuals import InteractionConfig
+from retarget.stance import StanceConfig
 from retarget.style import StyleConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "retarget"
@@ -62,6 +63,7 @@ class RetargetConfig:
     interaction: InteractionConfig = field(default_factory=InteractionConfig)
     style: StyleConfig = field(default_factory=StyleConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
+    stance: StanceConfig = field(default_factory=StanceConfig)
 
 
 class ConfigError(ValueError):
@@ -110,7 +112,7 @@ def retarget_demonstration(demo, cfg: RetargetConfig = RetargetConfig(), progres
         demo = resample_demonstration(demo, cfg.fps)
     problem = build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
                             solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m,
-                            max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed)
+                            max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance)
     built = time.perf_counter()
     sol = solve_sequence(problem, progress)
     solved = time.perf_counter()

@@ -24,39 +24,26 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from otr_gym import robot
-from otr_gym.robot_geometry import visual_meshes
+from otr_gym.robot_geometry import surface_margin_m, visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
-from retarget.demos import (
-    Demonstration,
-    DemoObject,
-    InvalidDemonstrationError,
-    scaled_object_positions,
-)
-from retarget.geometry import (
-    Channel,
-    GeometryConfig,
-    GridStack,
-    GroundChannel,
-    SDFChannel,
-)
-from retarget.kinematics import NUM_LINKS, RobotKinematics
+from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
+from retarget.geometry import Channel, GeometryConfig, GridStack, GroundChannel, SDFChannel
+from retarget.kinematics import NUM_LINKS, RobotKinematics, link_pairs_beyond
 from retarget.margins import ErrorMargin, cached_margin
-from retarget.meshes import as_trimesh
+from retarget.meshes import as_trimesh, object_mesh
 from retarget.probes import (
+    PointClusters,
     ProbeSet,
     hull_guard_points,
     human_probes,
     robot_guard_points,
     robot_probes,
+    robot_self_points,
     robot_vertex_guards,
 )
 from retarget.residuals import FIXED, InteractionConfig
-from retarget.style import (
-    StyleConfig,
-    StyleTargets,
-    pelvis_height_ratio,
-    robot_style_targets,
-)
+from retarget.stance import FootTurns, StanceConfig, demonstrated_stance, demonstrated_turns, sole_points
+from retarget.style import StyleConfig, StyleTargets, pelvis_height_ratio, robot_style_targets
 
 MODES = ("native", "scaled", "robot-only")
 
@@ -182,6 +169,20 @@ class Problem:
     style_cfg: StyleConfig
     solver: SolverConfig
     band_m: float  # d̄
+    #: (L,) m: how far Unitree's original surface may lie beyond each link's shipped mesh
+    #: (``otr_gym.robot_geometry.surface_margin_m``); non-penetration rows keep it as clearance.
+    surface_margin: np.ndarray
+    #: Planted feet (``retarget.stance``): G1 foot links (F,), their flat-sole points (link
+    #: frame), the person's stance per frame (T, F) and the settings.
+    feet: np.ndarray
+    soles: tuple[np.ndarray, ...]
+    stance: np.ndarray
+    turns: FootTurns
+    stance_cfg: StanceConfig
+    #: (P, 2) links whose visual meshes must not overlap (more than two joints apart)
+    self_pairs: np.ndarray
+    self_points: ProbeSet  # visual-mesh vertices thinned for self-collision (``robot_self_points``)
+    self_clusters: PointClusters  # their clusters
 
     @property
     def num_frames(self) -> int:
@@ -284,14 +285,15 @@ def correspondences(robot_set: ProbeSet, human: ProbeSet, demo: Demonstration, s
 
 def _object_channel(obj: DemoObject, geometry: GeometryConfig, cache_dir: Path | None) -> SDFChannel:
     source = obj.mesh_path or obj.name
-    mesh = as_trimesh(obj.vertices, obj.faces, f"object '{obj.name}' ({source})")
+    mesh = object_mesh(obj.vertices, obj.faces, f"object '{obj.name}' ({source})")
     return SDFChannel.from_mesh(mesh, geometry, cache_dir, name=obj.name)
 
 
 def build_problem(demo: Demonstration, mode: str = "native", *, geometry: GeometryConfig = GeometryConfig(),
                   interaction: InteractionConfig = InteractionConfig(), style: StyleConfig = StyleConfig(),
                   solver: SolverConfig = SolverConfig(), guard_spacing_m: float = 0.008,
-                  max_probes_per_link: int | None = None, seed: int = 0, cache_dir: Path | None = None) -> Problem:
+                  max_probes_per_link: int | None = None, seed: int = 0, cache_dir: Path | None = None,
+                  stance: StanceConfig = StanceConfig()) -> Problem:
     """Probes, channels, correspondences and style targets of ``demo`` (at its own fps)."""
     scale = mode_scale(demo, mode)
     kin = kinematics()
@@ -324,6 +326,9 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
 
     targets = robot_style_targets(part_pos, demo.part_quat_w, kin, pelvis_height_ratio(demo.stature_m * scale))
     guards = robot_guard_points(guard_spacing_m)
+    feet = robot.body_indices(list(robot.FEET))
+    soles = tuple(sole_points(guards.points[guards.body == f], stance.sole_band_m) for f in feet)
+    in_stance, turns = demonstrated_feet(demo, part_pos, part_rot, scale, soles, stance)
     vertex_guards = robot_vertex_guards()
     both = ProbeSet(robot_set.body_names, np.concatenate([robot_set.points, guards.points]),
                     np.concatenate([robot_set.body, guards.body]))
@@ -335,12 +340,31 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                "sampling_gap": gap}
     problem = Problem(fps=demo.fps, kin=kin, robot=robot_set, guards=guards, vertex_guards=vertex_guards,
                       link_center=centre, link_radius=radius, **anchors,
-                      link_grids=robot_link_grids(solver.check_margin_m, cache_dir) if len(channels) > 1
-                      else GridStack([None] * NUM_LINKS),
+                      link_grids=robot_link_grids(solver.check_margin_m, cache_dir),
                       demo_points=demo_points, part_pos_w=part_pos, part_rot_w=part_rot, channels=tuple(channels),
                       objects=tuple(objects), style=targets, q_init=np.zeros(kin.nq), interaction=interaction,
-                      style_cfg=style, solver=solver, band_m=geometry.band_m)
+                      style_cfg=style, solver=solver, band_m=geometry.band_m, surface_margin=surface_margin_m(),
+                      feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, turns=turns, stance_cfg=stance,
+                      self_pairs=link_pairs_beyond(kin.parents, 2), self_points=robot_self_points()[0], self_clusters=robot_self_points()[1])
     return replace(problem, q_init=initial_configuration(problem))
+
+
+def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float,
+                      soles: tuple[np.ndarray, ...], cfg: StanceConfig) -> tuple[np.ndarray, FootTurns]:
+    """The person's stance (T, F) and stance turns mapped onto the G1 soles, from the foot units
+    (the human parts of each G1 foot link, ``retarget.human.G1_LINK_PARTS``: ankle, then toes),
+    surface × ``scale`` (``retarget.stance``)."""
+    from retarget.human import G1_LINK_PARTS
+
+    names = list(demo.surface.part_names)
+    parts = [[names.index(p) for p in G1_LINK_PARTS[foot]] for foot in robot.FEET]
+    vertices = [np.concatenate([np.einsum("tij,vj->tvi", part_rot_w[:, k], scale * np.asarray(demo.surface.vertices[k]))
+                                + part_pos_w[:, k, None] for k in ks], axis=1) for ks in parts]
+    stance = demonstrated_stance(np.stack([v[..., 2].min(axis=1) for v in vertices], axis=1), cfg.contact_m)
+    boxes = np.stack([[s[:, :2].min(axis=0), s[:, :2].max(axis=0)] for s in soles])
+    turns = demonstrated_turns(part_pos_w[:, [ks[0] for ks in parts]], part_rot_w[:, [ks[0] for ks in parts]],
+                               part_pos_w[:, [ks[1] for ks in parts]], vertices, stance, boxes, cfg.pivot_min_rad)
+    return stance, turns
 
 
 #: Cells of an object grid within this distance of the surface get a measured error margin.
@@ -356,12 +380,7 @@ def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack
     """The signed distance grids of the G1 links' visual meshes (link frames) out to
     ``reach_m``, stacked in BODY_NAMES order (links without a mesh have none); each grid is
     cached on disk like the object grids."""
-    from retarget.geometry import (
-        VoxelGrid,
-        build_sdf_grid,
-        cached_arrays,
-        default_cache_dir,
-    )
+    from retarget.geometry import VoxelGrid, build_sdf_grid, cached_arrays, default_cache_dir
 
     meshes = visual_meshes()
     root = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "robot_links"

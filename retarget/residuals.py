@@ -6,7 +6,8 @@ the channel frame, x_c = R_cᵀ(x − τ_c). For each active pair the cost has u
 
     r^d = d − (d̂)₊,   r^x = ρ_c(w; ŵ) (as a 3-vector, see witness_vector),   r^n = (sign(d̂) n̂·(x_c − ŵ))₋
 
-weighted f_ℓ/N_ℓ · λ · β² (r^d) or f_ℓ/N_ℓ · λ · β̄² (r^x, r^n). β̄ depends on the demonstration
+weighted f_ℓ/N_ℓ · λ · β² (r^d) or f_ℓ/N_ℓ · λ · β̄² (r^x, r^n) (ours, per link and channel, the
+contact-state rows of ``retarget.rows``: see ``InteractionConfig.hold_weight``). β̄ depends on the demonstration
 only; β also on the current d, so the r^d row is the product β·r^d and is differentiated as such.
 
 Jacobian factors. Every scalar row is linearised as r + φ_Aᵀ ν_A + φ_Bᵀ ν_B where ν_X is the
@@ -47,6 +48,19 @@ class InteractionConfig:
     beta_max: float = 5.0
     #: f_ℓ: per-link weight, kept at 1 in the paper.
     link_weight: float = 1.0
+    #: Ours: contact-state rows, one per link and channel, on the link's closest active probe,
+    #: with d̂_ℓ the smallest d̂ of the link's probes (its demonstrated part's gap). A link whose
+    #: part touches ((d̂_ℓ)₊ < ``hold_m``, the evaluation's ε) is pulled in when farther than
+    #: (d̂_ℓ)₊ (weight ``hold_weight``): a hand that touches in the demonstration touches. A link
+    #: whose part stays off is pushed out to min(d̂_ℓ, ``clearance_m``) (``clearance_weight``):
+    #: a part the person keeps off a surface does not touch it. r^d alone pulls both ways with
+    #: λ^d/N_ℓ per probe, too weakly to keep a smaller robot's hands on the person's object, or
+    #: its chest off it (OMOMO largebox: object recall 71 %, trunk on the box at 0 mm where the
+    #: person's is 8–12 cm away). Not normalised by N_ℓ: 1 cm off costs 1 (per m² × 1e4).
+    hold_weight: float = 1.0e4
+    hold_m: float = 0.02
+    clearance_weight: float = 1.0e4
+    clearance_m: float = 0.03
 
     @property
     def object_weights(self) -> tuple[float, float, float]:

@@ -21,6 +21,7 @@ import numpy as np
 from retarget.geometry import ProximityQuery
 from retarget.iterate import SectionTimer, SolverState, channel_pose
 from retarget.kinematics import NUM_LINKS, LinkFrames
+from retarget.probes import posed_in_frames
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
     PairSet,
@@ -31,6 +32,7 @@ from retarget.residuals import (
     to_channel_frame,
     twist_factors,
 )
+from retarget.stance import stance_rows
 from retarget.style import pose_rows
 from retarget.targets import FrameTargets, near_channel
 
@@ -124,11 +126,14 @@ def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad
 
 
 def _distance_block(track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, x_w: np.ndarray, x_c: np.ndarray,
-                    body: np.ndarray, origin: np.ndarray, d: np.ndarray, grad_c: np.ndarray) -> Rows:
+                    body: np.ndarray, origin: np.ndarray, d: np.ndarray, grad_c: np.ndarray,
+                    clearance: np.ndarray | float = 0.0) -> Rows:
     """Non-penetration rows of points against a channel: the grid distance minus the grid's
-    measured error bound there (``retarget.margins``), so that the exact surface is respected."""
+    measured error bound there (``retarget.margins``), so that the exact surface is respected,
+    minus ``clearance`` (m): for robot points, how far Unitree's original surface may lie
+    beyond the shipped mesh (``Problem.surface_margin``)."""
     value = d - track.margin.at(x_c) if track.margin is not None else d
-    return signed_distance_rows(value, grad_c, x_w, origin, body, track.body, rot_c, pos_c)
+    return signed_distance_rows(value - clearance, grad_c, x_w, origin, body, track.body, rot_c, pos_c)
 
 
 @dataclass
@@ -186,7 +191,8 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
             ib = np.flatnonzero(q.in_band & (q.d < check))
             pts, body = sel[ib], problem.robot.body[idx[sel[ib]]]
             con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, pts, axis=0), np.take(x_c, pts, axis=0), body,
-                                    np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0)), c)
+                                    np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0),
+                                    np.take(problem.surface_margin, body)), c)
     link_min = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
     # Guard points: the distance field is 1-Lipschitz, so a guard is at least as far as its
     # nearest area probe (its anchor) minus their separation; only guards whose bound is
@@ -207,7 +213,8 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         ib = np.flatnonzero(in_band & (d < check))
         body = gb[ib]
         con.add(_distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0), body,
-                                np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0)), c)
+                                np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
+                                np.take(problem.surface_margin, body)), c)
     return pairs, link_min
 
 
@@ -229,6 +236,35 @@ def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: 
                      targets.robot[p.channel].take(p.probes), norm_link[body])
         cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
     return cost, sum(len(p.probes) for p in pairs), link_counts
+
+
+def _contact_state_rows(problem: Problem, targets: FrameTargets, fr: LinkFrames,
+                        pairs: list[_RobotPairs]) -> list[Rows]:
+    """Per channel and link, one row on the link's closest active probe that matches its
+    demonstrated contact state (``InteractionConfig.hold_weight``): pulled in to (d̂_ℓ)₊ when its
+    part touches, pushed out to min(d̂_ℓ, c̄) when its part stays off; none when already there."""
+    cfg = problem.interaction
+    out = []
+    for p in pairs:
+        if len(p.probes) == 0:
+            continue
+        hat = targets.robot_link_d[p.channel]
+        link = problem.robot.body[p.probes]
+        order = np.lexsort((p.query.d, link))  # per link, closest first
+        first = order[np.concatenate([[True], link[order][1:] != link[order][:-1]])]
+        lk, d = link[first], p.query.d[first]
+        touching = np.maximum(hat[lk], 0.0) < cfg.hold_m
+        target = np.where(touching, np.maximum(hat[lk], 0.0), np.minimum(hat[lk], cfg.clearance_m))
+        wrong = np.flatnonzero(np.where(touching, d > target, d < target))
+        if len(wrong) == 0:
+            continue
+        k = first[wrong]
+        track = problem.channels[p.channel]
+        rows = signed_distance_rows(d[wrong] - target[wrong], p.query.grad_d[k], p.x_w[k],
+                                    np.take(fr.pos, lk[wrong], axis=0), lk[wrong], track.body, p.rot_c, p.pos_c)
+        weight = np.where(touching[wrong], cfg.hold_weight, cfg.clearance_weight)
+        out.append(Rows(rows.value, weight, rows.phi, rows.body_a, rows.body_b))
+    return out
 
 
 def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i: int, count: int | None,
@@ -307,6 +343,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     tm.lap("robot_channels")
 
     cost, total_pairs, link_counts = _robot_cost(problem, targets, fr, robot_pairs, counts)
+    cost += _contact_state_rows(problem, targets, fr, robot_pairs)
     tm.lap("robot_rows")
 
     object_counts = []
@@ -328,15 +365,23 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
         con.add(object_guard_rows(problem, fr, links, track, rot_c, pos_c, check), len(problem.channels) + c)
     tm.lap("object_guards")
 
+    min_dist = min((float(r.value.min()) for r in con.rows if len(r)), default=np.inf)
+    # self-collision of the meshes: grouped like surface rows, per other link (channel code)
+    self_rows = self_mesh_rows(problem, fr, centre_w, margin)
+    con.rows.append(self_rows)
+    con.channel.append(2 * len(problem.channels) + self_rows.body_b)
+    tm.lap("self_meshes")
+
     surface = Rows.concat(con.rows)
-    min_dist = float(surface.value.min()) if len(surface) else np.inf
     surface_channel = np.concatenate(con.channel).astype(np.intp) if con.channel else np.zeros(0, np.intp)
     tm.lap("constraint_selection")
 
     capsules = self_collision_rows(problem, fr, margin)
-    min_self = float(capsules.value.min()) if len(capsules) else np.inf
+    min_self = min(float(capsules.value.min()) if len(capsules) else np.inf,
+                   float(self_rows.value.min()) if len(self_rows) else np.inf)
     tm.lap("self_collision")
 
+    cost.append(stance_rows(targets.stance, fr, problem.stance_cfg.weight))
     # E_sty,r and E_sty,o in one batch: the tracked links, then the free objects
     links = problem.style.links
     pos_weight, rot_weight = problem.style_weights
@@ -372,7 +417,46 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track
     link, x = link[keep], x[keep]
     a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[keep])  # ∇d in the world
     phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
-    return Rows(d[keep], np.ones(len(x)), phi, np.full(len(x), track.body), link)
+    return Rows(d[keep] - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
+
+
+def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach: float) -> Rows:
+    """Self-collision of the links' visual meshes: every vertex of link a against the distance
+    grid of link b (its frame), for the pairs of ``Problem.self_pairs`` whose bounding spheres
+    come within ``reach``, both ways; rows d − (m_a + m_b) ≥ 0 with both links moving, where m
+    is each link's surface margin (so that Unitree's original shells do not overlap either).
+    Vertices are tested by clusters first (``retarget.probes.PointClusters``): only clusters
+    whose centre, less their radius, is within ``reach`` of b are posed vertex by vertex.
+
+    The capsules (``self_collision_rows``) keep limbs apart coarsely; these rows are what the
+    evaluation measures (vertices of one mesh inside another)."""
+    pairs = problem.self_pairs
+    gap = (np.linalg.norm(centre_w[pairs[:, 0]] - centre_w[pairs[:, 1]], axis=1)
+           - problem.link_radius[pairs[:, 0]] - problem.link_radius[pairs[:, 1]])
+    close = pairs[gap < reach]
+    if len(close) == 0:
+        return Rows.empty()
+    ordered = np.concatenate([close, close[:, ::-1]])
+    clusters, grids, vg = problem.self_clusters, problem.link_grids, problem.self_points
+    cl = clusters.of_bodies(ordered[:, 0])
+    per_pair = clusters.body_offsets[ordered[:, 0] + 1] - clusters.body_offsets[ordered[:, 0]]
+    cl_b = np.repeat(ordered[:, 1], per_pair)
+    _, c_b = posed_in_frames(clusters.centre[cl], clusters.body[cl], cl_b, fr.rot, fr.pos)
+    d, _, inside = grids.distance(c_b, cl_b)
+    near = np.flatnonzero(inside & (d - clusters.radius[cl] < reach))
+    if len(near) == 0:
+        return Rows.empty()
+    idx = clusters.points_of(cl[near])
+    link_b = np.repeat(cl_b[near], clusters.offsets[cl[near] + 1] - clusters.offsets[cl[near]])
+    link_a = vg.body[idx]
+    x_w, x_b = posed_in_frames(vg.points[idx], link_a, link_b, fr.rot, fr.pos)
+    d, grad, inside = grids.distance(x_b, link_b)
+    keep = np.flatnonzero(inside & (d < reach))
+    link_a, link_b, x_w = link_a[keep], link_b[keep], x_w[keep]
+    a_w = np.einsum("kij,kj->ki", fr.rot[link_b], grad[keep])
+    phi = twist_factors(a_w, x_w, fr.pos[link_a], fr.pos[link_b])
+    value = d[keep] - problem.surface_margin[link_a] - problem.surface_margin[link_b]
+    return Rows(value, np.ones(len(keep)), phi, link_a, link_b)
 
 
 def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:

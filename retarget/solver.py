@@ -23,7 +23,7 @@ SQP loop over frames.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pinocchio as pin
@@ -37,7 +37,8 @@ from retarget.iterate import FrameStats, SectionTimer, SolverState, new_state, r
 from retarget.kinematics import NUM_LINKS
 from retarget.problem import Problem
 from retarget.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
-from retarget.rows import linearise
+from retarget.rows import linearise, self_mesh_rows
+from retarget.stance import stance_targets
 from retarget.targets import frame_targets
 
 
@@ -57,7 +58,11 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     """
     stats = FrameStats()
     tm = SectionTimer(stats.timings)
-    targets = frame_targets(problem, t)
+    previous = problem.kin.frames(state.data, state.prev[0]) if state.prev is not None else None
+    targets = replace(frame_targets(problem, t),
+                      stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
+                                            problem.surface_margin[problem.feet], previous,
+                                            problem.stance_cfg.touch_m, problem.turns))
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m
@@ -161,6 +166,19 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
             state.obj_rot[i] = tr.rot_w[t] @ tr.rot_w[t - 1].T @ state.obj_rot[i]
 
 
+def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> float:
+    """Smallest self-collision row of the meshes at ``q`` (m; inf when no pair is close).
+
+    An arm seed is a jump: when it lands a hand inside the thigh, the linearised rows of the
+    two shells point both ways and the SQP cannot get it out again (deep squat: 2 cm deep for
+    the rest of the clip). A seed is taken only if it leaves the meshes no deeper in each other
+    than the plain warm start does."""
+    fr = problem.kin.frames(state.data, q)
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    rows = self_mesh_rows(problem, fr, centre_w, problem.solver.constraint_margin_m)
+    return float(rows.value.min()) if len(rows) else np.inf
+
+
 def solve_sequence(problem: Problem, progress=None) -> Solution:
     """Solve every frame in order, each warm-started from the previous solution.
 
@@ -187,7 +205,10 @@ def _solve_sequence(problem: Problem, progress) -> Solution:
         if t > 0:
             warm_start(problem, state, t, held)
             # a local SQP cannot leave an arm branch pinned at joint limits (retarget.arm_seed)
-            state.q = seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps, free=arms_free)
+            seeded = seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps, free=arms_free)
+            if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
+                    _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m):
+                state.q = seeded
         stats.append(solve_frame(problem, state, t))
         fc = frame_contacts(problem, state, t)
         held = np.array([fc.distance[:, o.channel].min() < problem.solver.hold_distance_m for o in problem.objects],

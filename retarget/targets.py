@@ -5,13 +5,14 @@ iterations, and read by every iterate."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from retarget.kinematics import NUM_LINKS
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import Triples, to_channel_frame
+from retarget.stance import StanceTargets
 
 
 @dataclass(frozen=True)
@@ -22,12 +23,15 @@ class FrameTargets:
     robot: tuple[Triples, ...]  # per channel, for every robot probe (d̂ = d̄ when far)
     robot_active: tuple[np.ndarray, ...]  # per channel (P,) bool: d̂ < d̄
     robot_links: tuple[np.ndarray, ...]  # per channel (L,) bool: links with an active probe
+    robot_link_d: tuple[np.ndarray, ...]  # per channel (L,) m: each link's smallest d̂ (d̄ when far)
     objects: tuple[tuple[Triples | None, ...], ...]  # per free object, per channel (None: own channel)
     objects_active: tuple[tuple[np.ndarray | None, ...], ...]
     obj_pos: np.ndarray  # (O, 3) demonstrated object poses
     obj_rot: np.ndarray  # (O, 3, 3)
     style_pos: np.ndarray  # (S + O, 3) style targets of ``Problem.style_bodies``
     style_rot: np.ndarray  # (S + O, 3, 3)
+    #: planted-foot targets; they depend on the previous frame's solution, so the solver sets them
+    stance: StanceTargets = field(default_factory=StanceTargets.empty)
 
 
 def near_channel(track: ChannelTrack, x_c: np.ndarray, reach: float) -> np.ndarray:
@@ -65,12 +69,15 @@ def frame_targets(problem: Problem, t: int) -> FrameTargets:
     """Demonstrated triples of robot probes (through src(p)) and object probes at frame t."""
     band = problem.band_m
     human_w = problem.demo_points.posed(problem.part_rot_w[t], problem.part_pos_w[t])
-    robot_t, robot_a, robot_l = [], [], []
+    robot_t, robot_a, robot_l, robot_ld = [], [], [], []
     for track in problem.channels:
         tri, active = _demo_triples(track, human_w, track.rot_w[t], track.pos_w[t], band)
         robot_t.append(tri)
         robot_a.append(active)
         robot_l.append(np.bincount(problem.robot.body[active], minlength=NUM_LINKS) > 0)
+        link_d = np.full(NUM_LINKS, band)
+        np.minimum.at(link_d, problem.robot.body, tri.d)
+        robot_ld.append(link_d)
     obj_t, obj_a = [], []
     for obj in problem.objects:
         own = problem.channels[obj.channel]
@@ -88,6 +95,6 @@ def frame_targets(problem: Problem, t: int) -> FrameTargets:
         obj_a.append(tuple(per_a))
     obj_pos = np.array([problem.channels[o.channel].pos_w[t] for o in problem.objects]).reshape(-1, 3)
     obj_rot = np.array([problem.channels[o.channel].rot_w[t] for o in problem.objects]).reshape(-1, 3, 3)
-    return FrameTargets(t, tuple(robot_t), tuple(robot_a), tuple(robot_l), tuple(obj_t), tuple(obj_a),
+    return FrameTargets(t, tuple(robot_t), tuple(robot_a), tuple(robot_l), tuple(robot_ld), tuple(obj_t), tuple(obj_a),
                         obj_pos, obj_rot, np.concatenate([problem.style.pos_w[t], obj_pos]),
                         np.concatenate([problem.style.rot_w[t], obj_rot]))

@@ -24,7 +24,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.robot_geometry import posed_vertices, visual_meshes
 from otr_gym.rotations import quat_to_matrix
-from retarget.meshes import as_trimesh, signed_distance
+from retarget.meshes import object_mesh, signed_distance
 
 #: Demonstrated and robot hands compared by the contact-hold check (human part, G1 link).
 HANDS = (("L_Wrist", "left_wrist_yaw_link"), ("R_Wrist", "right_wrist_yaw_link"))
@@ -73,7 +73,7 @@ def check_reference(reference, demo, contact_m: float = 0.02) -> ReferenceChecks
         src = objects.get(track.name)
         if src is None:
             continue
-        mesh = as_trimesh(src.vertices, src.faces, f"object '{track.name}'")
+        mesh = object_mesh(src.vertices, src.faces, f"object '{track.name}'")
         rot = quat_to_matrix(track.quat_w)  # (T, 3, 3) object → world
         lo, hi = mesh.bounds
         obj_w = np.einsum("tij,vj->tvi", rot, mesh.vertices) + track.pos_w[:, None]

@@ -315,14 +315,30 @@ def test_bad_meshes_raise_invalid_mesh_error_naming_the_mesh(box_mesh, tmp_path)
     nan[3, 1] = np.nan
     with pytest.raises(InvalidMeshError, match="crate.*NaN"):
         SDFChannel.from_mesh(TriMesh(nan, box_mesh.faces, "crate"), cache_dir=tmp_path)
-    # an open L-shaped sheet (a floor and a wall, 4 triangles): no inside to speak of
-    v = np.array([[0, 0, 0], [0.4, 0, 0], [0.4, 0.3, 0], [0, 0.3, 0], [0, 0.3, 0.3], [0.4, 0.3, 0.3]], float)
-    f = np.array([[0, 1, 2], [0, 2, 3], [3, 2, 5], [3, 5, 4]])
-    with pytest.raises(InvalidMeshError, match="tablecloth: .*(encloses no volume|ambiguous)"):
-        SDFChannel.from_mesh(as_trimesh(v, f, "tablecloth"), cache_dir=tmp_path)
     with pytest.raises(InvalidMeshError, match="missing.obj.*not found"):
         load_channel(tmp_path / "missing.obj", cache_dir=tmp_path)
+    with pytest.raises(InvalidMeshError, match="empty: faces must be"):
+        SDFChannel.from_mesh(TriMesh(box_mesh.vertices, np.zeros((0, 3), np.int64), "empty"), cache_dir=tmp_path)
     assert not (tmp_path / "sdf").exists()  # nothing was cached for them
+
+
+def test_a_surface_without_inside_is_a_shell_of_documented_thickness(tmp_path):
+    """An open L-shaped sheet (a floor and a wall, 4 triangles) has no inside: it becomes a
+    shell, distance = unsigned distance − half of SHELL_THICKNESS_M, with a warning naming it."""
+    from retarget.meshes import SHELL_THICKNESS_M
+
+    v = np.array([[0, 0, 0], [0.4, 0, 0], [0.4, 0.3, 0], [0, 0.3, 0], [0, 0.3, 0.3], [0.4, 0.3, 0.3]], float)
+    f = np.array([[0, 1, 2], [0, 2, 3], [3, 2, 5], [3, 5, 4]])
+    with pytest.warns(UserWarning, match="tablecloth: .*(encloses no volume|ambiguous).*shell 10 mm"):
+        ch = SDFChannel.from_mesh(as_trimesh(v, f, "tablecloth"), cache_dir=tmp_path)
+    assert ch.mesh.shell_m == SHELL_THICKNESS_M
+    pts = np.array([[0.2, 0.1, 0.05], [0.2, 0.1, -0.02], [0.2, 0.25, 0.1], [0.2, 0.1, 0.0]])
+    half = 0.5 * SHELL_THICKNESS_M
+    exact, closest, _ = signed_distance(ch.mesh, pts)
+    np.testing.assert_allclose(exact, [0.05 - half, 0.02 - half, 0.05 - half, -half], atol=1e-9)
+    np.testing.assert_allclose(closest[:2, 2], 0.0, atol=1e-9)  # witnesses on the sheet's mid-surface
+    # the 1 cm grid agrees away from the sheet (at the sheet its kink is smoothed, see margins)
+    np.testing.assert_allclose(ch.query(pts[:3]).d, exact[:3], atol=1e-3)
 
 
 def test_config_defaults_are_the_papers_numbers():

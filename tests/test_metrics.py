@@ -21,7 +21,8 @@ from retarget.evaluation.feet import skate_and_clear
 from retarget.evaluation.orientation import orientation_error_deg
 from retarget.evaluation.proximity import BoundedMesh, ground_proximity, mesh_proximity
 from retarget.evaluation.scale import fit_track_scale, recover_scale, scale_demonstration
-from retarget.evaluation.self_collision import self_penetration, tree_distance
+from retarget.evaluation.self_collision import self_penetration
+from retarget.kinematics import tree_distance
 from retarget.evaluation.units import Piece, PosedUnit, group_units
 from retarget.meshes import as_trimesh, signed_distance
 from retarget.metrics import configure_parser, evaluate_sequence, main

@@ -128,7 +128,7 @@ def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(sh
     assert ref.contacts.distance.min() >= -EPS_COL  # probes, every link and channel
     assert checks.object_penetration_mesh_m <= EPS_COL  # exact, visual-mesh vertices vs the scanned box
     assert checks.ground_penetration_mesh_m <= EPS_COL
-    assert checks.joint_limit_excess_rad <= 1e-6 and checks.joint_speed_ratio <= 1.0
+    assert checks.joint_limit_excess_rad <= 1e-6 and checks.joint_speed_ratio <= 1.0 + 1e-6  # QP bounds to rounding
     assert checks.hand_contact_frames > 300 and checks.hand_hold >= 0.95
     assert checks.object_min_height_m >= -EPS_COL
 

@@ -94,10 +94,10 @@ def test_default_keyframe_is_the_knees_bent_pose_with_feet_on_the_ground():
     assert abs(sole) < 0.02  # soles within 2 cm of the ground in the default pose
 
 
-def test_assets_stay_within_5_mb_and_keep_the_unitree_licence():
+def test_assets_stay_within_10_mb_and_keep_the_unitree_licence():
     g1 = robot.G1_MJCF.parent
     total = sum(p.stat().st_size for p in robot.ASSETS_DIR.rglob("*") if p.is_file())
-    assert total <= 5_000_000
+    assert total <= 10_000_000  # error-bounded meshes (tools/build_g1_assets.py): 8.4 MB
     assert "BSD 3-Clause" in (g1 / "LICENSE").read_text()
 
 

@@ -1,64 +1,118 @@
 """Rebuild ``otr_gym/assets/g1`` from Unitree's G1 model as shipped in the mjlab wheel.
 
-    python tools/build_g1_assets.py [--wheel mjlab-1.6.0-py3-none-any.whl]
+    pip install pymeshlab          # the decimator (build time only)
+    python tools/build_g1_assets.py [--wheel mjlab-1.6.0-py3-none-any.whl] [--tolerance-mm 0.8]
 
 Steps: fetch the mjlab 1.6.0 wheel from PyPI (or use ``--wheel``), take
-``mjlab/asset_zoo/robots/unitree_g1/xmls/g1.xml`` and its STL meshes, decimate every visual
-mesh (quadric decimation, ≤ ``--max-faces`` triangles) so that all assets stay ≤ 5 MB, then
-add what the RL spec needs: position actuators (kp, kd, effort from ``otr_gym.robot``), joint
-armature, the 200 Hz physics options and the "knees_bent" keyframe. The model stays under
-Unitree's BSD-3-Clause licence (``otr_gym/assets/g1/LICENSE``).
+``mjlab/asset_zoo/robots/unitree_g1/xmls/g1.xml`` and its STL meshes, and decimate every visual
+mesh with a bounded error: each connected piece separately (so no piece merges or falls
+apart), by quadric edge collapse (MeshLab, topology and boundaries preserved), with the
+largest reduction whose two-sided distance to the original piece (vertices and area samples,
+both ways) stays within ``--tolerance-mm``. Then add what the RL spec needs: position
+actuators (kp, kd, effort from ``otr_gym.robot``), joint armature, the 200 Hz physics options
+and the "knees_bent" keyframe. Prints the per-link error table (``otr_gym.true_surface``:
+outer-surface p99/max, surface error, hull volume change, pieces) and writes it to
+``mesh_error.json``, whose surface error is the margin the solver and ``retarget.verify`` add
+to keep their checks conservative. The model stays under Unitree's BSD-3-Clause licence
+(``otr_gym/assets/g1/LICENSE``).
 """
 
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import tempfile
 import xml.etree.ElementTree as ET
-import zipfile
 from pathlib import Path
 
-import fast_simplification
+import igl
 import numpy as np
 import trimesh
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from otr_gym import robot  # noqa: E402
+from otr_gym.true_surface import (  # noqa: E402
+    ORIGINAL_STEM,
+    fetch_wheel,
+    mesh_error,
+    read_wheel,
+    write_error_table,
+)
 
-PREFIX = "mjlab/asset_zoo/robots/unitree_g1/xmls/"
+#: Pieces with fewer triangles are kept as they are.
+MIN_FACES = 64
+#: Bisection steps on the reduction ratio (the last accepted ratio is within 1 % of the best).
+BISECTION_STEPS = 7
 
 
-def fetch_wheel(dest: Path) -> Path:
-    subprocess.run([sys.executable, "-m", "pip", "download", "-q", "--no-deps", "mjlab==1.6.0", "-d", str(dest)],
-                   check=True)
-    return next(dest.glob("mjlab-*.whl"))
+def _two_sided_distance_m(a: trimesh.Trimesh, b: trimesh.Trimesh, samples: int = 3000) -> float:
+    """Largest distance of a's vertices and area samples to b, and of b's to a (m)."""
+    worst = 0.0
+    for src, dst in ((a, b), (b, a)):
+        pts = np.concatenate([src.vertices, trimesh.sample.sample_surface(src, samples, seed=0)[0]])
+        d2, _, _ = igl.point_mesh_squared_distance(pts, np.asarray(dst.vertices, np.float64),
+                                                   np.asarray(dst.faces, np.int64))
+        worst = max(worst, float(np.sqrt(d2.max())))
+    return worst
 
 
-def decimate(data: bytes, max_faces: int) -> trimesh.Trimesh:
+def _stl_round_trip(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
+    """The mesh as it loads back from the shipped STL file (float32 vertices, merged)."""
+    return trimesh.load(trimesh.util.wrap_as_stream(mesh.export(file_type="stl")), file_type="stl", process=True)
+
+
+def _collapse(piece: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
+    import pymeshlab
+
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(np.asarray(piece.vertices, np.float64), np.asarray(piece.faces, np.int32)))
+    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=int(faces), preservetopology=True,
+                                                preserveboundary=True, boundaryweight=2.0, optimalplacement=True,
+                                                planarquadric=True, qualitythr=0.3, autoclean=True)
+    out = ms.current_mesh()
+    return _stl_round_trip(trimesh.Trimesh(out.vertex_matrix(), out.face_matrix(), process=True))
+
+
+def decimate_piece(piece: trimesh.Trimesh, tolerance_m: float) -> trimesh.Trimesh:
+    """The coarsest decimation of one connected piece that stays one piece (as the STL file
+    loads back) within the tolerance."""
+    if len(piece.faces) < MIN_FACES:
+        return piece
+    lo, hi, best = 0.0, 0.98, piece
+    for _ in range(BISECTION_STEPS):
+        ratio = 0.5 * (lo + hi)
+        candidate = _collapse(piece, len(piece.faces) * (1.0 - ratio))
+        ok = (len(candidate.faces) >= 4 and len(candidate.split(only_watertight=False)) == 1
+              and _two_sided_distance_m(piece, candidate) <= tolerance_m)
+        lo, hi, best = (ratio, hi, candidate) if ok else (lo, ratio, best)
+    return best
+
+
+def decimate(data: bytes, tolerance_m: float) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
+    """(original, decimated) of an STL file's bytes."""
     mesh = trimesh.load(trimesh.util.wrap_as_stream(data), file_type="stl", process=True)
-    if len(mesh.faces) > max_faces:
-        v, f = fast_simplification.simplify(np.asarray(mesh.vertices, np.float32), np.asarray(mesh.faces),
-                                            target_reduction=1.0 - max_faces / len(mesh.faces))
-        mesh = trimesh.Trimesh(v, f, process=True)
-    return mesh
+    pieces = mesh.split(only_watertight=False)
+    return mesh, trimesh.util.concatenate([decimate_piece(p, tolerance_m) for p in pieces])
+
+
+def print_table(table: dict) -> None:
+    print(f"{'link':26s} {'faces':>13s} {'p99 mm':>7s} {'max mm':>7s} {'surf mm':>8s} {'hull %':>7s} {'pieces':>7s}")
+    for name, e in sorted(table.items()):
+        print(f"{name:26s} {e.faces[0]:6d}>{e.faces[1]:6d} {e.p99_mm:7.2f} {e.max_mm:7.2f} {e.surface_error_mm:8.2f} "
+              f"{e.hull_volume_change_pct:+7.2f} {e.components[0]:3d}>{e.components[1]:<3d}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--wheel", type=Path, help="mjlab wheel (downloaded from PyPI when omitted)")
-    ap.add_argument("--max-faces", type=int, default=1500, help="triangle budget per visual mesh")
+    ap.add_argument("--tolerance-mm", type=float, default=0.8,
+                    help="largest two-sided distance between a decimated piece and its original (mm)")
     ap.add_argument("--out", type=Path, default=ROOT / "otr_gym" / "assets" / "g1")
     args = ap.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp:
-        wheel = args.wheel or fetch_wheel(Path(tmp))
-        with zipfile.ZipFile(wheel) as zf:
-            xml_text = zf.read(PREFIX + "g1.xml").decode()
-            meshes = {Path(n).name: zf.read(n) for n in zf.namelist()
-                      if n.startswith(PREFIX + "assets/") and n.lower().endswith(".stl")}
+        xml_text, meshes = read_wheel(args.wheel or fetch_wheel(Path(tmp)))
 
     tree = ET.ElementTree(ET.fromstring(xml_text))
     root = tree.getroot()
@@ -67,10 +121,14 @@ def main() -> None:
     mesh_dir.mkdir(parents=True, exist_ok=True)
     for old in mesh_dir.glob("*.stl"):
         old.unlink()
+    table = {}
+    stem_to_name = {v: k for k, v in ORIGINAL_STEM.items()}
     for mesh in root.find("asset").iter("mesh"):
         src = mesh.get("file")
         dst = f"{mesh.get('name')}.stl"
-        decimate(meshes[src], args.max_faces).export(mesh_dir / dst)
+        original, shipped = decimate(meshes[src], args.tolerance_mm * 1e-3)
+        shipped.export(mesh_dir / dst)
+        table[stem_to_name.get(Path(src).stem, mesh.get("name"))] = mesh_error(original, _stl_round_trip(shipped))
         mesh.set("file", dst)
 
     # Physics options of the RL spec (§1): 200 Hz, Newton, 10 iterations, 20 line-search iterations.
@@ -97,8 +155,10 @@ def main() -> None:
 
     ET.indent(tree, space="  ")
     header = ("<!-- Unitree G1 29-DoF (BSD-3-Clause, see LICENSE), from the mjlab 1.6.0 wheel;\n"
-              "     generated by tools/build_g1_assets.py: decimated meshes, actuators, keyframe. -->\n")
+              "     generated by tools/build_g1_assets.py: error-bounded decimated meshes, actuators, keyframe. -->\n")
     (args.out / "g1.xml").write_text(header + ET.tostring(root, encoding="unicode") + "\n")
+    write_error_table(table, args.out / "mesh_error.json")
+    print_table(table)
     total = sum(p.stat().st_size for p in args.out.rglob("*") if p.is_file())
     print(f"wrote {args.out} ({total / 1e6:.2f} MB, {len(meshes)} meshes)")
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from otr_gym.reference import InvalidReferenceError, Reference
 from retarget.demos import Demonstration
-from retarget.meshes import TriMesh, as_trimesh
+from retarget.meshes import TriMesh, object_mesh
 
 
 @dataclass(frozen=True)
@@ -62,14 +62,14 @@ def object_channels(ref: Reference, demo_scaled: Demonstration, tracks: list) ->
     matched reference tracks (``reference_tracks``)."""
     out = []
     for o, track in zip(demo_scaled.objects, tracks):
-        demo_mesh = as_trimesh(o.vertices, o.faces, o.mesh_path or f"object '{o.name}' of {demo_scaled.name}")
+        demo_mesh = object_mesh(o.vertices, o.faces, o.mesh_path or f"object '{o.name}' of {demo_scaled.name}")
         if track is None:
             out.append(ObjectChannel(o.name, demo_mesh, o.pos_w, o.quat_w, demo_mesh, o.pos_w, o.quat_w,
                                      tracked=False, static=o.static))
             continue
         ref_mesh = demo_mesh
         if track.mesh_vertices is not None and track.mesh_faces is not None:
-            ref_mesh = as_trimesh(track.mesh_vertices, track.mesh_faces, f"{ref.source}: mesh of '{track.name}'")
+            ref_mesh = object_mesh(track.mesh_vertices, track.mesh_faces, f"{ref.source}: mesh of '{track.name}'")
         out.append(ObjectChannel(o.name, demo_mesh, o.pos_w, o.quat_w, ref_mesh, track.pos_w, track.quat_w,
                                  tracked=True, static=o.static))
     return out

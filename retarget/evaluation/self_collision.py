@@ -27,6 +27,7 @@ from functools import lru_cache
 import numpy as np
 
 from otr_gym.rotations import quat_to_matrix
+from retarget.kinematics import link_pairs_beyond
 from retarget.meshes import TriMesh, as_trimesh, signed_distance
 
 
@@ -91,26 +92,6 @@ def self_penetration(meshes: list[TriMesh], pos_w: np.ndarray, quat_w: np.ndarra
     return SelfPenetration(depth, pair_of)
 
 
-def tree_distance(parents: np.ndarray) -> np.ndarray:
-    """(L, L) number of joints between links of a kinematic tree (parents[i] < 0 at roots)."""
-    L = len(parents)
-    depth = np.zeros(L, dtype=np.int64)
-    chains = []
-    for i in range(L):
-        chain = [i]
-        while parents[chain[-1]] >= 0:
-            chain.append(int(parents[chain[-1]]))
-        chains.append(chain)
-        depth[i] = len(chain) - 1
-    dist = np.zeros((L, L), dtype=np.int64)
-    for i in range(L):
-        for j in range(L):
-            common = set(chains[i]) & set(chains[j])
-            lca_depth = max(depth[k] for k in common) if common else -1
-            dist[i, j] = depth[i] + depth[j] - 2 * lca_depth if common else L
-    return dist
-
-
 @dataclass(frozen=True)
 class RobotSelfModel:
     """The G1 links with a visual mesh, their surfaces (body frame) and the pairs to test."""
@@ -133,8 +114,5 @@ def g1_self_model(exclude_hops: int = 2) -> RobotSelfModel:
     ids = [model.body(n).id for n in links]
     id_to_link = {bid: i for i, bid in enumerate(ids)}
     parents = np.array([id_to_link.get(int(model.body_parentid[bid]), -1) for bid in ids])
-    dist = tree_distance(parents)
-    iu, ju = np.triu_indices(len(links), k=1)
-    keep = dist[iu, ju] > exclude_hops
     meshes = tuple(as_trimesh(vis[n].vertices, vis[n].faces, f"G1 visual mesh '{n}'") for n in links)
-    return RobotSelfModel(links, meshes, np.stack([iu[keep], ju[keep]], axis=1))
+    return RobotSelfModel(links, meshes, link_pairs_beyond(parents, exclude_hops))

@@ -1,0 +1,169 @@
+"""Planted feet: while the person stands on a foot, the robot's sole stays on the floor, still.
+
+The interaction residuals alone let a stance foot slide (its ground witnesses follow the
+person's foot, which slides in the capture, and trade against every other term) and hover
+(the person's sole hovers or sinks by a centimetre in most captures). Planting is therefore
+a term of its own, stiff enough to act as a constraint while the QP stays well posed:
+
+* **stance** comes from the demonstration, with the evaluation protocol's definition: frame t
+  is a stance frame of a foot when the person's foot unit (ankle and foot parts) comes within
+  ``contact_m`` of the floor (paper Sec. IV-A, ε_eval);
+* **sole points**: the hull vertices of the G1 foot link that lie on its flat sole (within
+  ``sole_band_m`` of the lowest one, link frame);
+* **pivots**: a person turns on a standing foot (on the ball or the heel). Per stance frame
+  the demonstrated foot's yaw change Δψ and the vertical axis it turned about (the rotation
+  centre of its ankle's planar motion) are measured; the centre, placed relative to the
+  person's sole (fractions of its length and width along the foot's heading), is mapped to
+  the same place on the G1 sole. Below ``pivot_min_rad`` per frame the foot holds still;
+* **targets**, per stance frame: the sole points that touched the floor (within ``touch_m``
+  of it) at the previous frame's solution keep that solution's horizontal position, turned
+  by Δψ about the mapped pivot, and stay on the floor; on the first stance frame
+  (touch-down), or when none touched, every sole point goes to the floor (a flat landing) and
+  may move horizontally. The pivot point itself does not move, so the foot never slides. "On the floor"
+  means at the link's surface margin above z = 0, so that Unitree's original sole, not only
+  the shipped mesh, touches it (``otr_gym.true_surface``);
+* **rows**: one per held coordinate, r = x_i(q) − target_i, weighted ``weight / k`` over the
+  k points of a foot (eq. m-energy's f_ℓ/N_ℓ normalisation): a 1 mm slip costs as much as
+  the whole interaction term of a link at 3 cm of error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from retarget.kinematics import LinkFrames
+from retarget.residuals import FIXED, Rows, twist_factors
+
+
+@dataclass(frozen=True)
+class StanceConfig:
+    """Planted-foot settings (ours; the paper has no separate stance term)."""
+
+    #: A foot is in stance while the person's foot unit is this close to the floor (ε_eval).
+    contact_m: float = 0.02
+    #: Weight of the planting rows per foot (per m², shared by its sole points).
+    weight: float = 1.0e6
+    #: Sole points: hull vertices of the foot link within this height of its lowest one (m).
+    sole_band_m: float = 0.004
+    #: A sole point "touched" the floor at the previous frame within this height (m).
+    touch_m: float = 0.002
+    #: A standing foot turning by less than this per frame holds still (rad; 0.005 = 14°/s at 50 fps).
+    pivot_min_rad: float = 0.005
+
+
+@dataclass(frozen=True)
+class StanceTargets:
+    """Planting targets of one frame: per held point, its link, its position in the link frame
+    and the world coordinates it must keep (NaN where a coordinate is free)."""
+
+    link: np.ndarray  # (k,) link index
+    points: np.ndarray  # (k, 3) link frame (m)
+    target_w: np.ndarray  # (k, 3) world (m); NaN = free
+
+    @staticmethod
+    def empty() -> StanceTargets:
+        return StanceTargets(np.zeros(0, np.intp), np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def demonstrated_stance(foot_lowest_z: np.ndarray, contact_m: float) -> np.ndarray:
+    """(T, F) stance flags from the person's foot units' lowest surface heights (T, F) (m)."""
+    return np.maximum(foot_lowest_z, 0.0) < contact_m
+
+
+def sole_points(hull_points: np.ndarray, band_m: float) -> np.ndarray:
+    """The hull points (link frame) of a foot link that lie on its flat sole."""
+    z = hull_points[:, 2]
+    return hull_points[z < z.min() + band_m]
+
+
+@dataclass(frozen=True)
+class FootTurns:
+    """Demonstrated stance turns: per frame t and foot, the yaw change Δψ from t − 1 (rad, 0
+    when the foot holds still or is not in stance at t − 1 and t) and the pivot on the G1 sole
+    (foot link frame, xy, m)."""
+
+    yaw: np.ndarray  # (T, F)
+    pivot: np.ndarray  # (T, F, 2)
+
+
+def demonstrated_turns(ankle_pos_w: np.ndarray, ankle_rot_w: np.ndarray, toe_pos_w: np.ndarray,
+                       foot_vertices_w: list[np.ndarray], stance: np.ndarray, sole_boxes: np.ndarray,
+                       min_rad: float) -> FootTurns:
+    """Stance turns of the person's feet mapped onto the G1 soles (see the module doc).
+
+    ``ankle_pos_w`` (T, F, 3), ``ankle_rot_w`` (T, F, 3, 3): the person's ankle parts (world);
+    ``toe_pos_w`` (T, F, 3) the toe joints (the heading is ankle → toe); ``foot_vertices_w`` per
+    foot its surface (T, V, 3); ``stance`` (T, F); ``sole_boxes`` (F, 2, 2): per G1 foot the
+    [min, max] of its sole's x (forward) and y (left) in the link frame.
+    """
+    T, F = stance.shape
+    yaw = np.zeros((T, F))
+    pivot = np.zeros((T, F, 2))
+    for f in range(F):
+        d_rot = ankle_rot_w[1:, f] @ np.swapaxes(ankle_rot_w[:-1, f], -1, -2)
+        d_yaw = np.arctan2(d_rot[:, 1, 0], d_rot[:, 0, 0])
+        for t in np.flatnonzero(stance[1:, f] & stance[:-1, f] & (np.abs(d_yaw) >= min_rad)) + 1:
+            c, s = np.cos(d_yaw[t - 1]), np.sin(d_yaw[t - 1])
+            rz = np.array([[c, -s], [s, c]])
+            p0, p1 = ankle_pos_w[t - 1, f, :2], ankle_pos_w[t, f, :2]
+            centre = np.linalg.solve(np.eye(2) - rz, p1 - rz @ p0)  # p1 = c + Rz (p0 − c)
+            heading = toe_pos_w[t, f, :2] - p1
+            heading /= max(np.linalg.norm(heading), 1e-9)
+            frame = np.stack([heading, [-heading[1], heading[0]]])  # rows: forward, left
+            sole = (foot_vertices_w[f][t, :, :2] - p1) @ frame.T
+            lo, hi = sole.min(axis=0), sole.max(axis=0)
+            frac = np.clip(((centre - p1) @ frame.T - lo) / np.maximum(hi - lo, 1e-9), 0.0, 1.0)
+            yaw[t, f] = d_yaw[t - 1]
+            pivot[t, f] = sole_boxes[f, 0] + frac * (sole_boxes[f, 1] - sole_boxes[f, 0])
+    return FootTurns(yaw, pivot)
+
+
+def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np.ndarray, ...],
+                   floor: np.ndarray, previous: LinkFrames | None, touch_m: float,
+                   turns: FootTurns | None = None) -> StanceTargets:
+    """Targets of frame t. ``stance`` (T, F); ``feet`` (F,) link indices; ``soles`` per foot its
+    sole points (link frame); ``floor`` (F,) m the height a sole point must sit at; ``previous``
+    the link frames of frame t − 1's solution (None on the first frame); ``turns`` the
+    demonstrated stance turns (None: every standing foot holds still)."""
+    links, points, targets = [], [], []
+    for f, link in enumerate(feet):
+        if not stance[t, f]:
+            continue
+        pts = soles[f]
+        target = np.full((len(pts), 3), np.nan)
+        target[:, 2] = floor[f]
+        if previous is not None and t > 0 and stance[t - 1, f]:
+            prev_w = pts @ previous.rot[link].T + previous.pos[link]
+            touched = prev_w[:, 2] < floor[f] + touch_m
+            if touched.any():
+                pts, target = pts[touched], target[touched]
+                held = prev_w[touched, :2]
+                if turns is not None and turns.yaw[t, f] != 0.0:
+                    c, s = np.cos(turns.yaw[t, f]), np.sin(turns.yaw[t, f])
+                    pivot = np.r_[turns.pivot[t, f], soles[f][:, 2].min()]
+                    centre = (previous.rot[link] @ pivot + previous.pos[link])[:2]
+                    held = centre + (held - centre) @ np.array([[c, s], [-s, c]])
+                target[:, :2] = held
+        links.append(np.full(len(pts), link, np.intp))
+        points.append(pts)
+        targets.append(target)
+    if not links:
+        return StanceTargets.empty()
+    return StanceTargets(np.concatenate(links), np.concatenate(points), np.concatenate(targets))
+
+
+def stance_rows(targets: StanceTargets, frames: LinkFrames, weight: float) -> Rows:
+    """Rows r = x(q) − target for every held coordinate (see the module doc for the weights)."""
+    if len(targets.link) == 0:
+        return Rows.empty()
+    link = targets.link
+    x_w = np.einsum("kij,kj->ki", frames.rot[link], targets.points) + frames.pos[link]
+    held = np.isfinite(targets.target_w)  # (k, 3)
+    point, axis = np.nonzero(held)
+    per_foot = np.bincount(link[point], minlength=int(link.max()) + 1)  # rows per foot link
+    a_w = np.eye(3)[axis]
+    phi = twist_factors(a_w, x_w[point], frames.pos[link[point]], None)
+    value = x_w[point, axis] - targets.target_w[point, axis]
+    return Rows(value, weight / per_foot[link[point]], phi, link[point], np.full(len(point), FIXED, np.intp))
