@@ -143,6 +143,10 @@ def collision_shapes(vertices: np.ndarray | None, faces: np.ndarray | None, what
         raise CollisionShapeError(f"{what}: mesh vertices contain NaN/inf")
     if faces.min() < 0 or faces.max() >= len(vertices):
         raise CollisionShapeError(f"{what}: mesh faces index vertices outside [0, {len(vertices)})")
+    spread = np.linalg.svd(vertices - vertices.mean(axis=0), compute_uv=False)
+    if len(spread) < 3 or spread[2] <= 1e-6 * max(spread[0], 1e-12):
+        raise CollisionShapeError(f"{what}: mesh cannot be decomposed: its vertices lie in a plane or on a line "
+                                  "(no volume)")
     mesh = trimesh.Trimesh(vertices, faces.astype(np.int64), process=False)
     try:
         volume = float(mesh.convex_hull.volume)

@@ -183,7 +183,7 @@ def _scene_object(ref: Reference, i: int, static: bool, cfg: ObjectsCfg) -> Scen
         if vertices is None or faces is None:
             raise InvalidReferenceError(
                 f"{what} has no mesh (the file embeds none): give one with the env config "
-                f"objects.overrides.{track.name}.mesh (`otr train --object-mesh {track.name}=MESH`) "
+                f"objects.overrides.{track.name}.mesh (`otr train --set env.objects.overrides.{track.name}.mesh=MESH`) "
                 f"or objects.overrides.{track.name}.box_half_extents")
         try:
             shapes, method = collision_shapes(vertices, faces, what, cfg.collision)
