@@ -81,8 +81,8 @@ class BoxTrackingTask(TrackingTask):
                               cfg.objects.randomization, self.generator)
 
     # ------------------------------------------------------------ hooks of TrackingTask
-    def _start_state(self) -> tuple[torch.Tensor, torch.Tensor]:
-        qpos, qvel = super()._start_state()
+    def start_state(self, noise: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        qpos, qvel = super().start_state(noise)
         lib, rows = self.objects, self.command.start_rows
         pos, quat = lib.pos_w[rows], lib.quat_w[rows]  # (N, M, ·)
         lin, ang = lib.lin_vel_w[rows], lib.ang_vel_w[rows]

@@ -199,12 +199,13 @@ class TrackingTask:
         if self.device.type == "cpu" and not bool(mask.any()):
             return  # free to test on the host; on a GPU the masked path runs to avoid a sync
         self.command.resample(mask)
-        qpos, qvel = self._start_state()
+        qpos, qvel = self.start_state()
         self.backend.reset(mask, qpos, qvel)
 
-    def _start_state(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Full (qpos, qvel) rows of every env at its start frame (reset noise per the config)."""
-        return self.command.start_state(noise=self.cfg.command.reset_noise_enabled)
+    def start_state(self, noise: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Full (qpos, qvel) rows of every env at its start frame, with the reset noise when
+        ``noise`` (default: the config's ``reset_noise_enabled``)."""
+        return self.command.start_state(noise=self.cfg.command.reset_noise_enabled if noise is None else noise)
 
     def _success(self, terminated: torch.Tensor, truncated: torch.Tensor, clip_ended: torch.Tensor) -> torch.Tensor:
         """(N,) bool: the episode ended this step without a termination (time-out or clip end)."""
