@@ -76,8 +76,8 @@ class ObjectLibrary:
         def cat(key: str) -> torch.Tensor:
             return torch.as_tensor(np.concatenate([c[key] for c in per_clip]), dtype=torch.float32, device=device)
 
-        def const(values) -> torch.Tensor:
-            return torch.as_tensor(np.asarray(values, np.float64).reshape(len(static), -1), dtype=torch.float32,
+        def const(values, width: int) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(values, np.float64).reshape(len(static), width), dtype=torch.float32,
                                    device=device)
 
         return cls(
@@ -85,8 +85,8 @@ class ObjectLibrary:
             hand_bodies=tuple(cfg.hand_bodies), window_source=tuple(c["source"] for c in per_clip),
             pos_w=cat("pos"), quat_w=cat("quat"), lin_vel_w=cat("lin"), ang_vel_w=cat("ang"),
             hand_target_o=cat("target"), hand_gate=cat("hand_gate"), support_gate=cat("support_gate"),
-            static_pos_w=const([objects.objects[i].pos_w for i in static]),
-            static_quat_w=const([objects.objects[i].quat_w for i in static]),
+            static_pos_w=const([objects.objects[i].pos_w for i in static], 3),
+            static_quat_w=const([objects.objects[i].quat_w for i in static], 4),
         )
 
 
