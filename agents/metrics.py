@@ -129,7 +129,7 @@ class ObjectEpisodeMetrics:
         rows = succeeded_now.bool()
         self.final_pos_cm = torch.where(rows, object_position_error_m(s).mean(-1).double() * 100.0, self.final_pos_cm)
         window = (o.support_gate > 0).any(dim=1)
-        touch = ((o.support_force_n > CONTACT_FORCE_N)).any(dim=1).double()
+        touch = (o.support_force_n > CONTACT_FORCE_N).any(dim=1).double()
         value = torch.where(window, touch, torch.full_like(touch, float("nan")))
         self.final_touch = torch.where(rows[:, None], value, self.final_touch)
 

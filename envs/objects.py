@@ -85,8 +85,8 @@ def _add_object(spec: mujoco.MjSpec, obj: SceneObject, visual: bool, condim: int
         body.add_freejoint(name=f"{obj.body}/joint")
     rgba = list(STATIC_RGBA if obj.static else OBJECT_RGBA)
     show_mesh = visual and obj.visual_vertices is not None and obj.method != "box"
-    common = dict(friction=[obj.friction, 0.005, 0.0001], priority=1, condim=condim,
-                  rgba=[*rgba[:3], 0.0] if show_mesh else rgba, group=3 if show_mesh else 0)
+    common = {"friction": [obj.friction, 0.005, 0.0001], "priority": 1, "condim": condim,
+              "rgba": [*rgba[:3], 0.0] if show_mesh else rgba, "group": 3 if show_mesh else 0}
     volumes = [_volume(s) for s in obj.shapes]
     density = 0.0 if obj.static else obj.mass_kg / sum(volumes)
     for k, shape in enumerate(obj.shapes):

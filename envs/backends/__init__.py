@@ -6,7 +6,7 @@ from envs.backends.base import PhysicsBackend
 from envs.backends.model import ContactPair, build_sim_model
 from envs.backends.mujoco_backend import MuJoCoBackend
 
-__all__ = ["ContactPair", "PhysicsBackend", "MuJoCoBackend", "build_sim_model", "make_backend"]
+__all__ = ["ContactPair", "MuJoCoBackend", "PhysicsBackend", "build_sim_model", "make_backend"]
 
 
 def make_backend(kind: str, model, num_worlds: int, device: str, decimation: int, contact_bodies,

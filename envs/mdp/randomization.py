@@ -8,10 +8,10 @@ All draws use the environment's torch generator; pushes are masked updates of ev
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import mujoco
 import torch
-
-from collections.abc import Sequence
 
 from envs.backends.base import PhysicsBackend
 from envs.config import ObjectRandomizationCfg, RandomizationCfg
