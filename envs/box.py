@@ -40,7 +40,7 @@ from envs.backends import ContactPair, PhysicsBackend, build_sim_model, make_bac
 from envs.config import BoxEnvCfg, load_box_config
 from envs.mdp.metrics import object_orientation_error_rad, object_position_error_m
 from envs.mdp.motion import MotionLibrary, ReferenceSource, prepared_references
-from envs.mdp.objects import ObjectLibrary
+from envs.mdp.objects import ObjectLibrary, fit_boxes_to_grasps
 from envs.mdp.randomization import randomize_objects
 from envs.mdp.state import ObjectState, TrackingState
 from envs.objects import GROUND_GEOM, SceneObjects, object_qpos, object_qvel, scene_objects
@@ -149,6 +149,8 @@ class BoxTrackingTask(TrackingTask):
             "hands": list(c.hand_bodies),
             "hand_point_offset_m": list(c.hand_point_offset_m),
             "collision": {o.name: o.method for o in self.scene.objects},
+            "grasp_shrink_m": {o.name: o.grasp_shrink_m.tolist() for o in self.scene.objects
+                               if o.grasp_shrink_m is not None},
             "mass_kg": {o.name: o.mass_kg for o in self.scene.moving},
             "window_source": list(self.objects.window_source),
             "frames": "object_pos_b/ori_b/lin_vel_b/ang_vel_b: simulated object in the robot anchor (torso) "
@@ -173,6 +175,11 @@ def make_box_task(reference: ReferenceSource, num_envs: int, backend: str, devic
     hand_pairs, support_pairs = contact_pairs(scene, cfg.objects.hand_bodies, cfg.objects.support_ground)
     pairs = hand_pairs + support_pairs
     model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim)
+    if cfg.objects.grasp_fit:
+        fitted = fit_boxes_to_grasps(refs, scene, model, cfg.objects)
+        if fitted is not scene:
+            scene = fitted
+            model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim)
     motion = MotionLibrary.from_references(refs, cfg.command.tracked_bodies, cfg.command.fps)
     objects = ObjectLibrary.from_references(refs, scene, model, cfg.objects)
     physics = make_backend(backend, model, num_envs, device, cfg.sim.decimation, cfg.sim.contact_bodies,

@@ -247,6 +247,10 @@ class ObjectsCfg:
     #: shapes within this distance (m) of the support's in the reference (geometry only).
     support_threshold_m: float = 0.02
     support_ground: bool = True
+    #: Narrow box objects where the reference's hands (their collision capsules) would start
+    #: inside them (envs.mdp.objects.fit_boxes_to_grasps): by this quantile of the depths.
+    grasp_fit: bool = True
+    grasp_fit_quantile: float = 0.75
     window_ramp_s: float = 0.1  # a gate ramps 0 → 1 over the first frames of its window
     window_min_gap_s: float = 0.1  # shorter gaps between two windows are closed
     #: Uniform ± noise on free-standing objects' start position (m, world; §2 HS object). An

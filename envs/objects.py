@@ -53,6 +53,9 @@ class SceneObject:
     quat_w: np.ndarray  # (4,) wxyz
     visual_vertices: np.ndarray | None = None  # the mesh as given, for rendering
     visual_faces: np.ndarray | None = None
+    #: (3,) m the box was narrowed by per axis to fit the reference's grasps
+    #: (``envs.mdp.objects.fit_boxes_to_grasps``), None when untouched
+    grasp_shrink_m: np.ndarray | None = None
 
     @property
     def body(self) -> str:

@@ -23,7 +23,8 @@ from envs.box import make_box_task
 from envs.collision import collision_shapes
 from envs.config import BOX_CONFIG, BoxEnvCfg, load_box_config
 from envs.mdp import rewards as reward_terms
-from envs.mdp.objects import proximity_gate
+from envs.mdp.motion import prepared_references
+from envs.mdp.objects import _Geometry, proximity_gate
 from envs.mdp.state import ObjectState
 from envs.objects import object_qpos
 from otr_gym.reference import InvalidReferenceError, Reference
@@ -335,3 +336,28 @@ def test_both_backends_put_the_objects_on_the_reference_and_agree_on_their_state
         worst["support_force"] = max(worst["support_force"], (a.support_force_n - b.support_force_n).abs().max().item())
     assert worst["pos"] < 1e-3 and worst["quat"] < 1e-3 and worst["lin_vel"] < 0.05, worst
     assert worst["support_force"] < 10.0, worst
+
+
+def test_a_box_the_reference_hand_starts_inside_is_narrowed_on_the_grasped_axis_only(box_reference_geometry, tmp_path):
+    ref = Reference.load(box_reference_geometry)
+    wide = trimesh.creation.box(extents=(2 * BOX_HALF_M, 2 * BOX_HALF_M + 0.06, 2 * BOX_HALF_M))
+    ref.objects[0].mesh_vertices, ref.objects[0].mesh_faces = np.asarray(wide.vertices), np.asarray(wide.faces)
+    path = ref.save(tmp_path / "wide.npz")  # beside the left hand, the box now reaches into its capsule
+    cfg = load_box_config(overrides={"objects": {"grasp_fit": False}})
+    before = make_box_task(path, 1, "mujoco", "cpu", cfg=cfg, evaluation=True)
+    task = make_box_task(path, 1, "mujoco", "cpu", evaluation=True)
+    box = task.scene.moving[0]
+    assert before.scene.moving[0].grasp_shrink_m is None
+    assert np.allclose(np.sort(before.scene.moving[0].shapes[0].half_extents), [0.1, 0.1, 0.13])
+    lateral = int(np.argmax(before.scene.moving[0].shapes[0].half_extents))  # the 26 cm (y) axis
+    assert np.flatnonzero(box.grasp_shrink_m).tolist() == [lateral] and box.grasp_shrink_m[lateral] > 0.005
+    assert np.allclose(box.shapes[0].half_extents + box.grasp_shrink_m, before.scene.moving[0].shapes[0].half_extents)
+    assert task.policy_metadata()["objects"]["grasp_shrink_m"]["box"] == pytest.approx(box.grasp_shrink_m.tolist())
+
+    def left_hand_gap(t) -> np.ndarray:
+        prepared = prepared_references(path, t.cfg.command.tracked_bodies)[0]
+        hands, _ = _Geometry(t.backend.model, t.scene, t.cfg.objects).distances(prepared, [0], [1], hands=True)
+        return hands[62:98, 0, 0]  # the frames the box rests beside the left hand
+
+    assert left_hand_gap(before).max() < -0.005  # the reference hand starts inside the box
+    assert np.quantile(left_hand_gap(task), 0.25) >= -1e-3  # after the fit it starts (at most) touching it

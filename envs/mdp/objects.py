@@ -33,6 +33,7 @@ import mujoco
 import numpy as np
 import torch
 
+from envs.collision import BoxShape
 from envs.config import ObjectsCfg
 from envs.objects import GROUND_GEOM, SceneObjects
 from otr_gym.reference import Reference
@@ -88,6 +89,69 @@ class ObjectLibrary:
             static_pos_w=const([objects.objects[i].pos_w for i in static], 3),
             static_quat_w=const([objects.objects[i].quat_w for i in static], 4),
         )
+
+
+def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model: mujoco.MjModel,
+                        cfg: ObjectsCfg) -> SceneObjects:
+    """Narrow box-shaped moving objects so that the reference's grasps do not start inside them.
+
+    A reference is retargeted against the object's *surface* and the robot's *visual* hand;
+    the simulation collides the hand's capsule (fatter than the hand) with the fitted box (an
+    enclosing box, wider than a scan's bulging sides). On our OMOMO large-box reference both
+    add up to 3.5 cm of penetration per hand (median inside the hand windows), so every reset
+    inside a grasp would eject the box. The grasped axis is the box axis whose faces are
+    nearest to the reference hand points in most frames where a hand is inside the box; its
+    half-extent shrinks (both faces, the centre stays) by the ``grasp_fit_quantile`` of those
+    penetration depths, at most by half.
+    Only that axis: a box lifted at its bottom edges (OMOMO's) keeps its height, so it still
+    rests on the floor and the table where the reference has it. The mass stays. Other shapes
+    are kept; ``objects`` itself is returned when nothing changes.
+    """
+    geometry = _Geometry(model, objects, cfg)
+    moving = [i for i, o in enumerate(objects.objects) if not o.static]
+    static = [i for i, o in enumerate(objects.objects) if o.static]
+    depth: dict[int, list[list[float]]] = {k: [[], [], []] for k in range(len(moving))}
+    for ref in refs:
+        hand_d, _ = geometry.distances(ref, moving, static, hands=True)
+        target = _hand_points_in_object(ref, moving, cfg)  # (T, H, M, 3)
+        for k, i in enumerate(moving):
+            shapes = objects.objects[i].shapes
+            if len(shapes) != 1 or not isinstance(shapes[0], BoxShape):
+                continue
+            box = shapes[0]
+            local = quat_apply_inverse(np.broadcast_to(box.quat_wxyz, target[:, :, k].shape[:-1] + (4,)),
+                                       target[:, :, k] - box.pos)
+            axis = np.argmax(np.abs(local) / box.half_extents, axis=-1)  # (T, H): the face the hand is at
+            inside = hand_d[:, :, k] < 0.0
+            for a in range(3):
+                depth[k][a].extend((-hand_d[:, :, k][inside & (axis == a)]).tolist())
+    out, changed = list(objects.objects), False
+    for k, i in enumerate(moving):
+        obj = objects.objects[i]
+        counts = [len(d) for d in depth[k]]
+        if max(counts) < 5:
+            continue
+        axis = int(np.argmax(counts))  # the grasped axis: the faces most hand frames are at
+        box = obj.shapes[0]
+        shrink = np.zeros(3)
+        shrink[axis] = min(max(float(np.quantile(depth[k][axis], cfg.grasp_fit_quantile)), 0.0),
+                           0.5 * box.half_extents[axis])
+        if shrink[axis] > 1e-3:
+            fitted = BoxShape(box.half_extents - shrink, box.pos, box.quat_wxyz)
+            out[i] = replace(obj, shapes=(fitted,), grasp_shrink_m=shrink)
+            changed = True
+    return replace(objects, objects=tuple(out)) if changed else objects
+
+
+def _hand_points_in_object(ref: Reference, moving: list[int], cfg: ObjectsCfg) -> np.ndarray:
+    """(T, H, M, 3) reference hand points p_eef in each moving object's frame."""
+    pos = np.stack([ref.objects[i].pos_w for i in moving], axis=1)
+    quat = np.stack([ref.objects[i].quat_w for i in moving], axis=1)
+    hands = ref.body_index(cfg.hand_bodies)  # raises naming the file if a hand body is missing
+    hand_pos = ref.body_pos_w[:, hands] + quat_apply(ref.body_quat_w[:, hands],
+                                                     np.broadcast_to(cfg.hand_point_offset_m, (len(hands), 3)))
+    rel = hand_pos[:, :, None] - pos[:, None]  # (T, H, M, 3)
+    return quat_apply_inverse(np.broadcast_to(quat[:, None], rel.shape[:-1] + (4,)), rel)
 
 
 def proximity_gate(distance_m: np.ndarray, threshold_m: float, fps: float, ramp_s: float,
@@ -182,11 +246,7 @@ def _clip_arrays(ref: Reference, moving: list[int], static: list[int], geometry:
     tracks = [ref.objects[i] for i in moving]
     pos = np.stack([o.pos_w for o in tracks], axis=1)
     quat = np.stack([o.quat_w for o in tracks], axis=1)
-    hands = ref.body_index(cfg.hand_bodies)  # raises naming the file if a hand body is missing
-    hand_pos = ref.body_pos_w[:, hands] + quat_apply(ref.body_quat_w[:, hands],
-                                                     np.broadcast_to(cfg.hand_point_offset_m, (len(hands), 3)))
-    rel = hand_pos[:, :, None] - pos[:, None]  # (T, H, M, 3)
-    target = quat_apply_inverse(np.broadcast_to(quat[:, None], rel.shape[:-1] + (4,)), rel)
+    target = _hand_points_in_object(ref, moving, cfg)
     annotated = _annotated_hand_distances(ref, moving, cfg.hand_bodies)
     hand_d, support_d = geometry.distances(ref, moving, static, hands=annotated is None)
     if annotated is not None:
