@@ -1,4 +1,5 @@
-"""``otr evaluate RUN_OR_CHECKPOINT [--reference REF]``: success rate and MPJPE of a policy.
+"""``otr evaluate RUN_OR_CHECKPOINT [--reference REF]``: success rate and MPJPE of a policy
+(and, for OTR-G1-BoxTrack-v0, the object errors).
 
 Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
 
@@ -7,7 +8,11 @@ Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
 - the policy's deterministic mean action;
 - success: the clip reached its last frame without a tracking termination;
 - MPJPE: root-relative over the 14 tracked bodies, every step an env is alive, including the
-  step it terminates on; per clip and overall (frame-weighted), in mm.
+  step it terminates on; per clip and overall (frame-weighted), in mm;
+- box task (``agents.metrics.ObjectEpisodeMetrics``): object position error (world, cm) mean
+  and 95th percentile over the same frames, orientation error (deg), the error at the clip's
+  last frame of successful episodes, and per support (ground, table) how often the object
+  touches it inside its windows and at the clip's end (the box placed on the table).
 
 Deterministic physics makes every env on one clip identical, so by default one env runs per
 clip. ``--randomize`` keeps the training randomisation (friction, centre of mass, joint
@@ -30,7 +35,7 @@ from tensordict import TensorDict
 
 from agents import runs
 from agents.devices import resolve_device
-from agents.metrics import EpisodeAccumulator, summarize
+from agents.metrics import EpisodeAccumulator, ObjectEpisodeMetrics, summarize
 from agents.policy import TrainedPolicy, load_policy
 from agents.vecenv import make_vec_env
 from envs.mdp.metrics import mpjpe_root_relative
@@ -59,16 +64,23 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
     n = vec.num_envs
     clip_ids = vec.command.clip.cpu().numpy()
     acc = EpisodeAccumulator(n, vec.device)
+    objects = None
+    if vec.tracking_state.objects is not None:
+        objects = ObjectEpisodeMetrics(n, vec.tracking_state.objects.support_names, vec.device)
     max_steps = int(vec.motion.clip_length.max()) + 1
     for _ in range(max_steps):
         actions = policy.act(TensorDict(dict(obs), batch_size=[n], device=vec.device))
         obs, _, terminated, truncated, _ = vec.step(actions)
+        alive = ~acc.finished
         acc.add_frame(mpjpe_root_relative(vec.tracking_state))
+        if objects is not None:
+            objects.add_frame(vec.tracking_state, alive)
+            objects.end_step(vec.tracking_state, alive & truncated & ~terminated)
         acc.end_step(terminated, truncated)
         if acc.all_finished:
             break
     names = [Path(name).stem for name in vec.motion.names]
-    return summarize(acc.per_env(), clip_ids, names)
+    return summarize(acc.per_env(), clip_ids, names, objects)
 
 
 def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None, num_envs: int | None = None,
@@ -93,15 +105,21 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         policy = first if ckpt == first.checkpoint else load_policy(ckpt, torch_device)
         result = {"checkpoint": str(ckpt.path), "iteration": ckpt.iteration, **run_episodes(vec, policy, seed)}
         results.append(result)
-        print(f"iteration {ckpt.iteration:>6}: success {100 * result['success_rate']:5.1f} %  "
-              f"MPJPE {result['mpjpe_mm']:7.1f} mm  ({result['envs']} envs, {result['frames']} frames)")
+        line = (f"iteration {ckpt.iteration:>6}: success {100 * result['success_rate']:5.1f} %  "
+                f"MPJPE {result['mpjpe_mm']:7.1f} mm")
+        if result.get("object_pos_error_cm") is not None:
+            line += (f"  object {result['object_pos_error_cm']:5.1f} cm (p95 {result['object_pos_error_p95_cm']:5.1f}), "
+                     f"{result['object_ori_error_deg']:5.1f} deg")
+        print(f"{line}  ({result['envs']} envs, {result['frames']} frames)")
     env.close()
     ref = Path(reference)
     return {
         "run": ckpts[-1].run_dir.name,
         "reference": {"name": ref.name if ref.is_dir() else ref.stem, "path": str(ref.resolve())},
         "protocol": {"randomize": randomize, "num_envs": num_envs, "seed": seed, "device": str(torch_device),
-                     "start_frame": 0, "action": "deterministic mean", "mpjpe": "root-relative, 14 bodies, mm"},
+                     "start_frame": 0, "action": "deterministic mean", "mpjpe": "root-relative, 14 bodies, mm",
+                     "objects": "position error world cm (mean over moving objects), orientation deg; "
+                                "support contact: force > 1 N inside the object-support windows"},
         "final": results[-1],
         "checkpoints": results,
     }

@@ -1,6 +1,7 @@
 """Evaluation bookkeeping: per-env episode sums, then per-clip and overall summaries.
 
-The per-frame metric is the env's ``envs.mdp.metrics.mpjpe_root_relative`` (paper Sec. IV-E):
+The per-frame metric is the env's ``envs.mdp.metrics.mpjpe_root_relative`` (paper Sec. IV-E)
+(and for the box task its object errors, ``ObjectEpisodeMetrics``):
 MPJPE = mean_b ‖(p_b − p_root) − (p̂_b − p̂_root)‖ over the 14 tracked bodies, root = pelvis,
 world frame without rotation alignment (heading drift is charged, as in the paper).
 """
@@ -11,6 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+
+from envs.mdp.metrics import object_orientation_error_rad, object_position_error_m
 
 M_TO_MM = 1000.0
 
@@ -57,8 +60,9 @@ class EpisodeAccumulator:
         return {"success": success, "mpjpe_mm": mpjpe, "frames": frames}
 
 
-def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: list[str]) -> dict:
-    """Aggregate per-env results per clip and overall.
+def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: list[str],
+              objects: ObjectEpisodeMetrics | None = None) -> dict:
+    """Aggregate per-env results per clip and overall (with ``objects``, their metrics too).
 
     Overall MPJPE is frame-weighted (every evaluated frame counts once), so a policy that falls
     early is not rewarded with a small average over a few frames *and* it shows in success.
@@ -75,6 +79,7 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
             "success_rate": float(per_env["success"][sel].mean()),
             "mpjpe_mm": float((per_env["mpjpe_mm"][sel] * frames).sum() / max(frames.sum(), 1)),
             "frames": int(frames.sum()),
+            **(objects.summary(sel) if objects is not None else {}),
         })
     frames = per_env["frames"]
     return {
@@ -82,5 +87,76 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
         "mpjpe_mm": float((per_env["mpjpe_mm"] * frames).sum() / max(frames.sum(), 1)),
         "frames": int(frames.sum()),
         "envs": int(frames.size),
+        **(objects.summary() if objects is not None else {}),
         "clips": clips,
     }
+
+
+CONTACT_FORCE_N = 1.0  # an object "touches" a support when their contact force exceeds this
+
+
+class ObjectEpisodeMetrics:
+    """Per-frame object errors of an evaluation (OTR-G1-BoxTrack-v0), kept for every env and
+    step so that means and percentiles can be taken over any set of envs:
+
+    - object position error (cm; mean over the moving objects) and orientation error (deg),
+      every frame an env is alive;
+    - per support (ground, table): frames inside an object–support window, and of those the
+      frames where an object touches it (contact force > 1 N);
+    - at the last frame of an episode that succeeded: the position error, and whether the
+      object touches each support whose window is open there (e.g. the box on the table).
+    """
+
+    def __init__(self, num_envs: int, support_names: tuple[str, ...], device: torch.device | str = "cpu"):
+        self.support_names = tuple(support_names)
+        self._pos, self._ori, self._alive, self._inside, self._touch = [], [], [], [], []
+        self.final_pos_cm = torch.full((num_envs,), float("nan"), dtype=torch.float64, device=device)
+        self.final_touch = torch.full((num_envs, len(support_names)), float("nan"), dtype=torch.float64, device=device)
+
+    def add_frame(self, s, alive: torch.Tensor) -> None:
+        o = s.objects
+        self._pos.append(object_position_error_m(s).mean(-1) * 100.0)
+        self._ori.append(torch.rad2deg(object_orientation_error_rad(s)).mean(-1))
+        self._alive.append(alive.clone())
+        inside = (o.support_gate > 0).any(dim=1)  # (N, S): any object's window with that support
+        touch = ((o.support_force_n > CONTACT_FORCE_N) & (o.support_gate > 0)).any(dim=1)
+        self._inside.append(inside)
+        self._touch.append(touch)
+
+    def end_step(self, s, succeeded_now: torch.Tensor) -> None:
+        """Record the last frame of envs whose episode succeeded in this step."""
+        o = s.objects
+        rows = succeeded_now.bool()
+        self.final_pos_cm = torch.where(rows, object_position_error_m(s).mean(-1).double() * 100.0, self.final_pos_cm)
+        window = (o.support_gate > 0).any(dim=1)
+        touch = (o.support_force_n > CONTACT_FORCE_N).any(dim=1).double()
+        value = torch.where(window, touch, torch.full_like(touch, float("nan")))
+        self.final_touch = torch.where(rows[:, None], value, self.final_touch)
+
+    def summary(self, envs: np.ndarray | None = None) -> dict:
+        """Object metrics over the envs selected by ``envs`` ((N,) bool; all when None)."""
+        alive = torch.stack(self._alive).cpu().numpy()  # (steps, N)
+        sel = np.ones(alive.shape[1], bool) if envs is None else np.asarray(envs, bool)
+        mask = alive[:, sel]
+        pos = torch.stack(self._pos).cpu().numpy()[:, sel][mask]
+        ori = torch.stack(self._ori).cpu().numpy()[:, sel][mask]
+        inside = torch.stack(self._inside).cpu().numpy()[:, sel] & mask[..., None]
+        touch = torch.stack(self._touch).cpu().numpy()[:, sel] & mask[..., None]
+        final = self.final_pos_cm.cpu().numpy()[sel]
+        final_touch = self.final_touch.cpu().numpy()[sel]
+        out = {
+            "object_pos_error_cm": float(pos.mean()) if pos.size else None,
+            "object_pos_error_p95_cm": float(np.percentile(pos, 95)) if pos.size else None,
+            "object_ori_error_deg": float(ori.mean()) if ori.size else None,
+            "object_final_pos_error_cm": float(np.nanmean(final)) if np.isfinite(final).any() else None,
+            "support_contact": {},
+        }
+        for k, name in enumerate(self.support_names):
+            frames = int(inside[..., k].sum())
+            ends = final_touch[:, k][np.isfinite(final_touch[:, k])]
+            out["support_contact"][name] = {
+                "window_frames": frames,
+                "contact_rate": float(touch[..., k].sum() / frames) if frames else None,
+                "contact_at_clip_end": float(ends.mean()) if ends.size else None,
+            }
+        return out

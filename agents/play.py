@@ -2,7 +2,8 @@
 
 Runs the single CPU-MuJoCo env (``gymnasium.make``) in evaluation mode (frame 0, no
 randomisation or noise, the episode ends with the clip or a termination) with the policy's
-mean action, and records the env's frames: the robot plus a translucent ghost of the reference.
+mean action, and records the env's frames: the robot plus a translucent ghost of the reference
+(for OTR-G1-BoxTrack-v0 also the box and the table, and a ghost of the reference box).
 Offscreen rendering needs ``MUJOCO_GL=egl`` (GPU / EGL) or ``osmesa``; egl is the default here.
 """
 
@@ -32,11 +33,11 @@ def play(run_or_checkpoint, video: str | Path, reference: str | Path | None = No
     import imageio.v2 as imageio
 
     import otr_gym  # noqa: F401  (registers the environments)
-    from envs.config import load_track_config
+    from envs.config import load_env_config
 
     policy = load_policy(run_or_checkpoint, "cpu")
     reference = reference or policy.run_config["reference"]
-    cfg = load_track_config(overrides=eval_env_overrides(policy.train_cfg.env, randomize=False))
+    cfg = load_env_config(policy.train_cfg.task, overrides=eval_env_overrides(policy.train_cfg.env, randomize=False))
     env = gymnasium.make(policy.train_cfg.task, reference=reference, render_mode="rgb_array", cfg=cfg,
                          evaluation=True, width=width, height=height)
     fps = env.metadata["render_fps"]

@@ -20,8 +20,13 @@ TRAINING_PANELS = {
     "Train/mean_episode_length": "mean episode length (steps)",
     "Perf/total_fps": "env steps / s",
     "metric/mpjpe_mm": "MPJPE, root-relative (mm)",
-    "metric/success_rate": "episodes without termination",
+    "metric/success_rate": "success rate",
+    "metric/object_pos_error_m": "object position error (m)",
+    "metric/object_ori_error_rad": "object orientation error (rad)",
+    "termination/object_pos": "object termination rate (per step)",
 }
+#: One more panel overlays every per-term reward (weight · value · dt, mean over envs).
+REWARD_PREFIX = "reward/"
 
 
 def read_scalars(run_dir: str | Path) -> dict[str, tuple[list[int], list[float]]]:
@@ -44,14 +49,21 @@ def read_scalars(run_dir: str | Path) -> dict[str, tuple[list[int], list[float]]
 def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
     scalars = read_scalars(run_dir)
     panels = [(tag, title) for tag, title in TRAINING_PANELS.items() if tag in scalars]
+    rewards = sorted(tag for tag in scalars if tag.startswith(REWARD_PREFIX))
+    if rewards:
+        panels.append((REWARD_PREFIX, "reward terms (weight · value · dt)"))
     cols = min(3, len(panels))
     rows = -(-len(panels) // cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
     for ax in axes.flat[len(panels):]:
         ax.set_visible(False)
     for ax, (tag, title) in zip(axes.flat[:len(panels)], panels, strict=True):
-        steps, values = scalars[tag]
-        ax.plot(steps, values, lw=1.2)
+        if tag == REWARD_PREFIX:
+            for name in rewards:
+                ax.plot(*scalars[name], lw=1.0, label=name[len(REWARD_PREFIX):])
+            ax.legend(fontsize=6, ncol=2)
+        else:
+            ax.plot(*scalars[tag], lw=1.2)
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("iteration")
         ax.grid(alpha=0.3)

@@ -1,4 +1,4 @@
-"""``otr train``: PPO (rsl-rl-lib's OnPolicyRunner) on OTR-G1-Track-v0.
+"""``otr train``: PPO (rsl-rl-lib's OnPolicyRunner) on OTR-G1-Track-v0 or (``--task``) OTR-G1-BoxTrack-v0.
 
 config (configs/agents/ppo_track.yaml + CLI) -> vector env -> VecEnv adapter -> runner.
 
@@ -10,6 +10,12 @@ config's ``max_iterations`` in total. ``--max-minutes M`` stops after the first 
 ends past M minutes of learning (the clock starts with the first rollout: environment build
 and compilation are not charged). Ctrl-C, like the budget, stops between two iterations and
 writes a checkpoint first.
+
+``--set KEY=VALUE`` (repeatable) overrides any key of the training config by its dotted path,
+the environment's under ``env.`` (the task's configs/env YAML layout); values are YAML, e.g.
+``--set env.rewards.hand_contact.weight=0`` (an ablation) or
+``--set env.objects.overrides.largebox.mesh=largebox.obj`` (a reference without embedded mesh).
+They are stored in the run, so evaluation, export and play use them too.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import torch
+import yaml
 
 from agents import runs
 from agents.config import TrainCfg, load_train_config, train_config_from_dict
@@ -30,6 +37,7 @@ from agents.devices import resolve_device
 from agents.runner import TrackingRunner
 from agents.stopping import StopConditions, TrainingStopped
 from agents.vecenv import RslRlVecEnv, make_vec_env
+from otr_gym.config import merge
 from otr_gym.reference import InvalidReferenceError, list_references
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -48,11 +56,31 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, help="random seed (default: config, 42)")
     parser.add_argument("--save-interval", type=int, help="checkpoint every N iterations (default: config, 500)")
     parser.add_argument("--config", help="training YAML (default: configs/agents/ppo_track.yaml)")
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config key by dotted path (YAML value), e.g. "
+                        "env.rewards.hand_contact.weight=0; repeatable")
+
+
+def parse_sets(items: list[str]) -> dict:
+    """["a.b=1", "a.c=x"] -> {"a": {"b": 1, "c": "x"}} (values parsed as YAML)."""
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY")
+        *parents, leaf = key.strip().split(".")
+        node = out
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"--set {item!r}: '{part}' is already set to a value")
+        node[leaf] = yaml.safe_load(value)
+    return out
 
 
 def _overrides(args: argparse.Namespace) -> dict:
     keys = {"task": args.task, "num_envs": args.num_envs, "seed": args.seed, "save_interval": args.save_interval}
-    return {k: v for k, v in keys.items() if v is not None}
+    return merge(parse_sets(getattr(args, "sets", []) or []), {k: v for k, v in keys.items() if v is not None})
 
 
 def _reference_info(reference: Path) -> dict:
@@ -69,7 +97,7 @@ def _setup(args: argparse.Namespace) -> tuple[TrainCfg, Path, Path | None, runs.
     if args.resume:
         ckpt = runs.resolve_checkpoint(args.resume)
         record = runs.run_config(ckpt.run_dir)
-        cfg = train_config_from_dict({**record["train"], **_overrides(args)})
+        cfg = train_config_from_dict(merge(record["train"], _overrides(args)))
         reference = Path(args.reference or record["reference"])
         run_dir = ckpt.run_dir
         if args.iterations is None and ckpt.iteration + 1 >= cfg.max_iterations:

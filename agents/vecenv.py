@@ -1,4 +1,4 @@
-"""The rsl-rl VecEnv adapter over the Gymnasium vector env OTR-G1-Track-v0.
+"""The rsl-rl VecEnv adapter over the Gymnasium vector envs OTR-G1-Track-v0 and OTR-G1-BoxTrack-v0.
 
 The env already speaks torch on the device; the adapter only renames:
 
@@ -7,7 +7,9 @@ The env already speaks torch on the device; the adapter only renames:
   = truncated (rsl-rl bootstraps those) and ``extras["log"]`` = the env's per-term reward
   means, termination rates and tracking errors, plus two metrics for TensorBoard:
   ``metric/mpjpe_mm`` (root-relative MPJPE of the step, envs.mdp.metrics) and, once per rollout,
-  ``metric/success_rate`` (episodes ended by time-out or clip end rather than a termination);
+  ``metric/success_rate`` = successes / (successes + terminations) over the rollout, with the
+  env's ``info["success"]``: for the tracking task an episode that ended by time-out or clip
+  end, for the box task a clip run to its last frame (the episode may go on with a new start);
 - ``episode_length_buf`` reads and writes the env's own buffer (rsl-rl randomises it);
 - ``state_dict``/``load_state_dict``: the adaptive start sampler's failure statistics.
 
@@ -27,7 +29,7 @@ from tensordict import TensorDict
 import otr_gym  # noqa: F401  (registers the environments)
 from agents.metrics import M_TO_MM
 from agents.stopping import StopConditions, TrainingStopped
-from envs.config import load_track_config
+from envs.config import load_env_config
 from envs.mdp.metrics import mpjpe_root_relative
 
 
@@ -71,8 +73,9 @@ class RslRlVecEnv(VecEnv):
         log = dict(info["log"])
         log["metric/mpjpe_mm"] = mpjpe_root_relative(state).mean() * M_TO_MM
         dones = terminated | truncated
-        self._ended += dones.sum()
-        self._succeeded += truncated.sum()
+        success = info["success"]
+        self._ended += (success | terminated).sum()
+        self._succeeded += success.sum()
         if self._steps % self.num_steps_per_env == 0:
             ended = self._ended.item()
             if ended > 0:
@@ -107,7 +110,7 @@ class RslRlVecEnv(VecEnv):
 def make_vec_env(task: str, reference, num_envs: int, device: str, env_overrides: dict | None = None,
                  evaluation: bool = False, seed: int = 0):
     """The Gymnasium vector env ``task`` on MuJoCo-Warp (``device`` "cuda[:K]" or "cpu"),
-    with ``env_overrides`` applied on top of configs/env/track.yaml."""
-    cfg = load_track_config(overrides=env_overrides or None)
+    with ``env_overrides`` applied on top of the task's YAML (configs/env/track.yaml or box.yaml)."""
+    cfg = load_env_config(task, overrides=env_overrides or None)
     return gymnasium.make_vec(task, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
                               reference=reference, cfg=cfg, evaluation=evaluation, seed=seed)

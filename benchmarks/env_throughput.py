@@ -1,5 +1,7 @@
-"""Throughput of OTR-G1-Track-v0: env-steps/s vs num_envs on MuJoCo-Warp, against the raw
-MuJoCo-Warp physics of the same model, plus the single CPU env (MuJoCo).
+"""Throughput of OTR-G1-Track-v0 (or, with ``--task``, OTR-G1-BoxTrack-v0): env-steps/s vs
+num_envs on MuJoCo-Warp, against the raw MuJoCo-Warp physics of the same model, plus the
+single CPU env (MuJoCo). For the box task every size is also run on OTR-G1-Track-v0 with the
+same reference (its robot motion; the objects ignored) and the ratio box/track is printed.
 
 For every num_envs, one vector env (training configuration: randomisation and noise on) runs
 random actions; three rates are measured on it, in env-steps/s (one env-step = 4 physics
@@ -19,6 +21,8 @@ Usage::
 
     python benchmarks/env_throughput.py --device cuda --num-envs 1024 2048 4096 8192 16384 --out out/env_throughput.json
     python benchmarks/env_throughput.py --device cpu --num-envs 4 8 --steps 20 --cpu-steps 200 --out /tmp/tp.json
+    python benchmarks/env_throughput.py --task OTR-G1-BoxTrack-v0 --reference out/demo/box_carry.npz \
+        --num-envs 8192 --out out/env_throughput_box.json
 
 Writes the table to stdout, and the results to ``--out`` (JSON) and the same stem with ``.md``.
 On a fresh GPU machine the first size also pays MuJoCo-Warp's kernel compilation (minutes;
@@ -117,15 +121,19 @@ def _bare_world(num_envs: int, device, nconmax: int, njmax: int):
     return m, d
 
 
-def bench_vector(reference, num_envs: int, device: str, steps: int, warmup: int, final_obs: bool, seed: int) -> dict:
+def bench_vector(task_id: str, reference, num_envs: int, device: str, steps: int, warmup: int, final_obs: bool,
+                 seed: int) -> dict:
     import warp as wp
 
-    from envs.config import load_track_config
-    from envs.tracking import make_task
+    from envs.config import BOX_TASK, load_env_config
 
     free_before = torch.cuda.mem_get_info()[0] if device.startswith("cuda") else None
-    cfg = load_track_config()
+    cfg = load_env_config(task_id)
     cfg.final_obs = final_obs
+    if task_id == BOX_TASK:
+        from envs.box import make_box_task as make_task
+    else:
+        from envs.tracking import make_task
     t0 = time.perf_counter()
     task = make_task(reference, num_envs, "warp", device, cfg=cfg, seed=seed)
     build_s = time.perf_counter() - t0
@@ -138,7 +146,7 @@ def bench_vector(reference, num_envs: int, device: str, steps: int, warmup: int,
     first_step_s = time.perf_counter() - t0
     for i in range(warmup):
         task.step(actions[i % 16])
-    row = {"num_envs": num_envs, "build_s": round(build_s, 2), "first_step_s": round(first_step_s, 2)}
+    row = {"task": task_id, "num_envs": num_envs, "build_s": round(build_s, 2), "first_step_s": round(first_step_s, 2)}
     if dev.type == "cuda":
         row.update(_checks(task, actions))
     row["env_steps_per_s"], row["env_ms_per_step"] = _rate(lambda i: task.step(actions[i % 16]), steps, num_envs, dev)
@@ -150,7 +158,7 @@ def bench_vector(reference, num_envs: int, device: str, steps: int, warmup: int,
     backend = task.backend
     wp_device = wp.get_device(str(dev))
     everyone = torch.ones(num_envs, dtype=torch.bool, device=dev)
-    qpos0, qvel0 = task.command.start_state(noise=False)
+    qpos0, qvel0 = task.start_state(noise=False)
     ctrl = task.default_joint_pos.clone()
 
     def physics(launch):
@@ -175,13 +183,13 @@ def bench_vector(reference, num_envs: int, device: str, steps: int, warmup: int,
     return row
 
 
-def bench_cpu_single(reference, steps: int, seed: int) -> dict:
+def bench_cpu_single(task_id: str, reference, steps: int, seed: int) -> dict:
     """gymnasium.make single env (CPU MuJoCo), random actions, reset on episode end."""
     import gymnasium
 
     import otr_gym  # noqa: F401  (registers the environment)
 
-    env = gymnasium.make("OTR-G1-Track-v0", reference=reference)
+    env = gymnasium.make(task_id, reference=reference)
     env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     actions = (0.5 * rng.standard_normal((16, 29))).astype(np.float32)
@@ -199,15 +207,15 @@ def bench_cpu_single(reference, steps: int, seed: int) -> dict:
 
 
 def _table(rows: list[dict]) -> str:
-    head = ("num_envs", "env steps/s", "backend steps/s", "raw steps/s", "env/raw", "raw bare steps/s",
+    head = ("task", "num_envs", "env steps/s", "backend steps/s", "raw steps/s", "env/raw", "raw bare steps/s",
             "env ms/step", "mem GiB", "contacts/world")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['num_envs']} | error: {r['error']} |")
+            lines.append(f"| {r['task']} | {r['num_envs']} | error: {r['error']} |")
             continue
         mem = f"{r['device_mem_gib']:.2f}" if "device_mem_gib" in r else "-"
-        lines.append(f"| {r['num_envs']} | {r['env_steps_per_s']:,.0f} | {r['backend_steps_per_s']:,.0f} | "
+        lines.append(f"| {r['task']} | {r['num_envs']} | {r['env_steps_per_s']:,.0f} | {r['backend_steps_per_s']:,.0f} | "
                      f"{r['raw_steps_per_s']:,.0f} | {r['env_over_raw']:.0%} | {r['raw_bare_steps_per_s']:,.0f} | "
                      f"{r['env_ms_per_step']:.2f} | {mem} | "
                      f"{r['contacts_per_world']:.1f} |")
@@ -231,13 +239,16 @@ def _meta(device: str) -> dict:
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="OTR-G1-Track-v0", choices=("OTR-G1-Track-v0", "OTR-G1-BoxTrack-v0"),
+                        help="environment; the box task is also compared with OTR-G1-Track-v0 at every size")
     parser.add_argument("--device", default="cuda", help="warp device for the vector env: cuda, cuda:K or cpu")
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1024, 2048, 4096, 8192, 16384])
     parser.add_argument("--steps", type=int, default=200, help="timed env steps per num_envs")
     parser.add_argument("--warmup", type=int, default=20, help="untimed env steps after the first one")
     parser.add_argument("--cpu-steps", type=int, default=1000, help="steps of the single CPU env (0: skip)")
     parser.add_argument("--reference", default=None,
-                        help="reference .npz or folder (default: a generated 11 s walk, agents.procedural)")
+                        help="reference .npz or folder (default: a generated 11 s walk, agents.procedural; the box "
+                        "task needs a reference with objects, e.g. out/demo/box_carry.npz from `otr demo`)")
     parser.add_argument("--final-obs", action="store_true",
                         help="also compute info['final_obs'] (off, as the rsl-rl adapter runs it)")
     parser.add_argument("--seed", type=int, default=0)
@@ -250,32 +261,48 @@ def main(argv=None) -> dict:
     from agents.procedural import WalkSpec, walking_reference
 
     wp.config.quiet = True
+    box = args.task == "OTR-G1-BoxTrack-v0"
+    if box and args.reference is None:
+        parser.error("--task OTR-G1-BoxTrack-v0 needs --reference with objects (e.g. out/demo/box_carry.npz)")
     reference = args.reference or walking_reference(WalkSpec(steps=20))
+    tasks = [args.task, "OTR-G1-Track-v0"] if box else [args.task]
     results = {"meta": _meta(args.device), "args": {k: str(v) for k, v in vars(args).items()}, "vector": []}
-    print(f"# OTR-G1-Track-v0 throughput on {results['meta']['device_name']} ({args.device})", flush=True)
+    print(f"# {args.task} throughput on {results['meta']['device_name']} ({args.device})", flush=True)
     for n in args.num_envs:
-        print(f"num_envs={n} ...", flush=True)
-        try:
-            row = bench_vector(reference, n, args.device, args.steps, args.warmup, args.final_obs, args.seed)
-        except Exception as exc:  # keep going: report OOM or a failing size in the table
-            traceback.print_exc()
-            row = {"num_envs": n, "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:200]}
-        gc.collect()  # free this size's env (and its device memory) before the next one
-        if args.device.startswith("cuda"):
-            torch.cuda.empty_cache()
-        print("   ", {k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
-        results["vector"].append(row)
+        for task_id in tasks:
+            print(f"{task_id} num_envs={n} ...", flush=True)
+            try:
+                row = bench_vector(task_id, reference, n, args.device, args.steps, args.warmup, args.final_obs,
+                                   args.seed)
+            except Exception as exc:  # keep going: report OOM or a failing size in the table
+                traceback.print_exc()
+                row = {"task": task_id, "num_envs": n, "error": f"{type(exc).__name__}: {exc}".splitlines()[0][:200]}
+            gc.collect()  # free this size's env (and its device memory) before the next one
+            if args.device.startswith("cuda"):
+                torch.cuda.empty_cache()
+            print("   ", {k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()}, flush=True)
+            results["vector"].append(row)
+    ratios = {}
+    if box:
+        for n in args.num_envs:
+            pair = {r["task"]: r for r in results["vector"] if r["num_envs"] == n and "error" not in r}
+            if len(pair) == 2:
+                ratios[n] = pair[args.task]["env_steps_per_s"] / pair["OTR-G1-Track-v0"]["env_steps_per_s"]
+        results["box_over_track"] = ratios
     if args.cpu_steps > 0:
-        results["cpu_single_env"] = bench_cpu_single(reference, args.cpu_steps, args.seed)
+        results["cpu_single_env"] = bench_cpu_single(args.task, reference, args.cpu_steps, args.seed)
 
     table = _table(results["vector"])
+    if ratios:
+        table += "\n\nOTR-G1-BoxTrack-v0 / OTR-G1-Track-v0 (same reference, same run): " + ", ".join(
+            f"{n} envs: {r:.2f}" for n, r in ratios.items())
     cpu = results.get("cpu_single_env")
     cpu_line = (f"\nSingle env, CPU MuJoCo (gymnasium.make): {cpu['env_steps_per_s']:,.0f} env-steps/s "
                 f"({cpu['ms_per_step']:.2f} ms/step, {cpu['episodes']} resets)") if cpu else ""
     meta = results["meta"]
-    checks = "".join(f"\nnum_envs={r['num_envs']}: host sync in step: {r['host_sync_in_step']}, "
+    checks = "".join(f"\n{r['task']} num_envs={r['num_envs']}: host sync in step: {r['host_sync_in_step']}, "
                      f"stale torch reads: {r['stale_reads']}" for r in results["vector"] if "stale_reads" in r)
-    markdown = (f"# OTR-G1-Track-v0 throughput\n\n{meta['device_name']} ({meta['device']}), {meta['date']}; "
+    markdown = (f"# {args.task} throughput\n\n{meta['device_name']} ({meta['device']}), {meta['date']}; "
                 f"torch {meta['torch']}, warp {meta['warp']}, mujoco {meta['mujoco']}, "
                 f"mujoco_warp {meta['mujoco_warp']}\n\n"
                 f"env-steps/s (1 env-step = 4 physics steps, 50 Hz policy); {args.steps} timed steps per size.\n\n"

@@ -1,8 +1,9 @@
-"""Typed configuration of the tracking environment (OTR-G1-Track-v0).
+"""Typed configuration of the tracking environments (OTR-G1-Track-v0, OTR-G1-BoxTrack-v0).
 
 Defaults are the numbers of docs/RL_SPEC.md (section cited per field); ``configs/env/track.yaml``
-lists the same values for users to edit and is loaded by ``load_track_config``. MDP terms are
-named by function: a reward ``fn`` is looked up in ``envs.mdp.rewards``, a termination in
+and ``configs/env/box.yaml`` list the same values for users to edit and are loaded by
+``load_track_config`` / ``load_box_config`` (``load_env_config`` picks by task id). MDP terms
+are named by function: a reward ``fn`` is looked up in ``envs.mdp.rewards``, a termination in
 ``envs.mdp.terminations``, an observation in ``envs.mdp.observations``.
 """
 
@@ -12,10 +13,14 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from envs.collision import CollisionCfg
 from otr_gym import robot
 from otr_gym.config import from_dict, load_yaml_mapping, merge
 
 DEFAULT_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "track.yaml"
+BOX_CONFIG = Path(__file__).resolve().parents[1] / "configs" / "env" / "box.yaml"
+TRACK_TASK = "OTR-G1-Track-v0"
+BOX_TASK = "OTR-G1-BoxTrack-v0"
 
 
 @dataclass
@@ -186,3 +191,151 @@ def load_track_config(path: str | Path | None = None, overrides: dict | None = N
     absent) and apply ``overrides`` (nested dict, same layout) on top."""
     data = merge(load_yaml_mapping(path, DEFAULT_CONFIG, "environment"), overrides)
     return from_dict(TrackEnvCfg, data, "track")
+
+
+# ---------------------------------------------------------------------------------------------
+# OTR-G1-BoxTrack-v0: objects in the loop (RL_SPEC §3 object variant, §4 object terms, §5, §6)
+
+
+@dataclass
+class ObjectOverrideCfg:
+    """Per-object settings that replace what the reference provides or the defaults."""
+
+    #: Mesh file (any trimesh-readable format, metres, in the frame of the reference's object
+    #: pose) for references that embed none (Holosoma's), or to replace the embedded one.
+    mesh: str | None = None
+    #: A box primitive instead of any mesh (half-extents, m, centred on the object frame).
+    box_half_extents: tuple[float, float, float] | None = None
+    mass_kg: float | None = None
+    friction: float | None = None
+
+
+@dataclass
+class ObjectRandomizationCfg:
+    """Object randomisation at start-up, one draw per env (§6 HS object; see configs/env/box.yaml
+    for why the friction range is not HS's raw numbers)."""
+
+    friction_range: tuple[float, float] = (0.5, 0.9)
+    mass_add_kg: tuple[float, float] = (0.0, 2.0)
+    inertia_scale: tuple[float, float] = (0.5, 1.5)  # §6 HS: Ixx ×[0.5, 1.5]; all three axes, one draw
+
+
+@dataclass
+class ObjectsCfg:
+    """How the reference's objects enter the simulation and the contact schedule."""
+
+    mass_kg: float = 1.0  # moving objects; inertia from their collision geometry at uniform density
+    #: Sliding friction of the objects. Object geoms get MuJoCo priority 1, so this coefficient
+    #: (not the max with the robot's 1.0) governs their contacts with hands, table and ground.
+    friction: float = 0.7
+    condim: int = 3
+    #: An object whose position moves less than this over every clip (and whose orientation
+    #: turns less than ``static_tolerance_rad``) is static: a fixed body (tables).
+    static_tolerance_m: float = 1e-3
+    static_tolerance_rad: float = 1e-3
+    overrides: dict[str, ObjectOverrideCfg] = field(default_factory=dict)
+    collision: CollisionCfg = field(default_factory=CollisionCfg)
+    #: Hands of the contact terms: bodies and the contact point p_eef in their frame (m): the
+    #: centre of the G1 hand's collision capsule.
+    hand_bodies: tuple[str, ...] = robot.HANDS
+    hand_point_offset_m: tuple[float, float, float] = (0.11, 0.0, 0.0)
+    #: Robot–object proximity windows: hand surface within this distance (m) of the object
+    #: surface, from the reference's contact annotations (``contact_distance``) when present,
+    #: else from the reference geometry (hand collision capsule vs. object collision shapes).
+    proximity_threshold_m: float = 0.05
+    #: Object–support windows (supports: static objects and the ground): object collision
+    #: shapes within this distance (m) of the support's in the reference (geometry only).
+    support_threshold_m: float = 0.02
+    support_ground: bool = True
+    #: Narrow box objects where the reference's hands (their collision capsules) would start
+    #: inside them (envs.mdp.objects.fit_boxes_to_grasps): by this quantile of the depths.
+    grasp_fit: bool = True
+    grasp_fit_quantile: float = 0.75
+    window_ramp_s: float = 0.1  # a gate ramps 0 → 1 over the first frames of its window
+    window_min_gap_s: float = 0.1  # shorter gaps between two windows are closed
+    #: Uniform ± noise on free-standing objects' start position (m, world; §2 HS object). An
+    #: object held at the start frame (a hand window open) instead follows the robot's root noise.
+    reset_noise_pos_m: tuple[float, float, float] = (0.05, 0.05, 0.0)
+    randomization: ObjectRandomizationCfg = field(default_factory=ObjectRandomizationCfg)
+
+
+def _box_sim() -> SimCfg:
+    # A carried box adds box–hand (2 × 2), box–ground/table (≤ 8) and robot–table contacts.
+    return SimCfg(nconmax=64, njmax=400)
+
+
+def _box_command() -> CommandCfg:
+    cmd = CommandCfg()
+    # Arm noise of ±0.1 rad moves a hand ~5 cm: into a held box. Half of it keeps starts
+    # inside a grasp penetration-free within a few cm (see configs/env/box.yaml).
+    cmd.reset_noise = replace(cmd.reset_noise, joint_pos_rad=0.05)
+    return cmd
+
+
+def _box_policy_obs() -> list[ObsTermCfg]:
+    # §3 actor (154) + FK actor additions (object pose n 0.02/0.05, supports) + the reference's
+    # object command and contact schedule.
+    return _policy_obs() + [ObsTermCfg("object_pos_b", 0.02), ObsTermCfg("object_ori_b", 0.05),
+                            ObsTermCfg("object_command", 0.0), ObsTermCfg("contact_schedule", 0.0),
+                            ObsTermCfg("static_object_pos_b", 0.02), ObsTermCfg("static_object_ori_b", 0.05)]
+
+
+def _box_critic_obs() -> list[ObsTermCfg]:
+    # §3 critic (286) + HS object additions (pose, velocity as a pure rotation) + privileged terms
+    return _critic_obs() + [ObsTermCfg(n) for n in (
+        "object_pos_b", "object_ori_b", "object_lin_vel_b", "object_ang_vel_b", "object_command",
+        "object_pos_error_b", "contact_schedule", "object_contact_forces", "static_object_pos_b",
+        "static_object_ori_b")]
+
+
+def _box_observations() -> ObservationCfg:
+    return ObservationCfg(policy=_box_policy_obs(), critic=_box_critic_obs())
+
+
+def _box_rewards() -> dict[str, RewardTermCfg]:
+    return {
+        **_rewards(),
+        # §4 HS object terms, plus FK's fine object position (σ 0.12 there): the ≤ 8 cm target
+        # needs a gradient at a few cm, where exp(−e²/0.3²) is flat (0.93 at 8 cm; σ 0.1: 0.53)
+        "object_pos": RewardTermCfg("object_position_error_exp", 1.0, {"sigma": 0.3}),
+        "object_pos_fine": RewardTermCfg("object_position_error_exp", 1.0, {"sigma": 0.1}),
+        "object_ori": RewardTermCfg("object_orientation_error_exp", 1.0, {"sigma": 0.4}),
+        # §4 FK object velocity tracking
+        "object_lin_vel": RewardTermCfg("object_linear_velocity_error_exp", 0.5, {"sigma": 0.5}),
+        "object_ang_vel": RewardTermCfg("object_angular_velocity_error_exp", 0.5, {"sigma": 0.3}),
+        # §4 HDMI force set-point per hand, gated by the robot–object windows
+        "hand_contact": RewardTermCfg("hand_contact_force_setpoint", 1.0, {
+            "sigma_pos_m": 0.3, "tolerance_m": 0.05, "force_threshold_n": 10.0, "sigma_force_n": 40.0, "gain": 5.0}),
+        # object–support contact gated by the object–support windows (FK weight 0.5)
+        "support_contact": RewardTermCfg("support_contact_force_setpoint", 0.5, {
+            "force_threshold_n": 5.0, "sigma_force_n": 10.0, "gain": 5.0}),
+    }
+
+
+def _box_terminations() -> dict[str, TerminationTermCfg]:
+    return {**_terminations(), "object_pos": TerminationTermCfg("object_position_error", {"threshold_m": 0.25})}
+
+
+@dataclass
+class BoxEnvCfg(TrackEnvCfg):
+    sim: SimCfg = field(default_factory=_box_sim)
+    command: CommandCfg = field(default_factory=_box_command)
+    observations: ObservationCfg = field(default_factory=_box_observations)
+    rewards: dict[str, RewardTermCfg] = field(default_factory=_box_rewards)
+    terminations: dict[str, TerminationTermCfg] = field(default_factory=_box_terminations)
+    objects: ObjectsCfg = field(default_factory=ObjectsCfg)
+
+
+def load_box_config(path: str | Path | None = None, overrides: dict | None = None) -> BoxEnvCfg:
+    """As ``load_track_config`` for OTR-G1-BoxTrack-v0 (default ``configs/env/box.yaml``)."""
+    data = merge(load_yaml_mapping(path, BOX_CONFIG, "environment"), overrides)
+    return from_dict(BoxEnvCfg, data, "box")
+
+
+def load_env_config(task: str, path: str | Path | None = None, overrides: dict | None = None) -> TrackEnvCfg:
+    """The environment config of ``task`` (its YAML, or ``path``) with ``overrides``."""
+    if task == BOX_TASK:
+        return load_box_config(path, overrides)
+    if task == TRACK_TASK:
+        return load_track_config(path, overrides)
+    raise ValueError(f"unknown task '{task}' (expected {TRACK_TASK} or {BOX_TASK})")

@@ -138,7 +138,7 @@ class TrackingTask:
 
         extras = {
             "time_outs": truncated,
-            "success": truncated,
+            "success": self._success(terminated, truncated, clip_ended),
             "terminations": fired,
             "log": self._log(terms, fired, s),
         }
@@ -199,8 +199,17 @@ class TrackingTask:
         if self.device.type == "cpu" and not bool(mask.any()):
             return  # free to test on the host; on a GPU the masked path runs to avoid a sync
         self.command.resample(mask)
-        qpos, qvel = self.command.start_state(noise=self.cfg.command.reset_noise_enabled)
+        qpos, qvel = self.start_state()
         self.backend.reset(mask, qpos, qvel)
+
+    def start_state(self, noise: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Full (qpos, qvel) rows of every env at its start frame, with the reset noise when
+        ``noise`` (default: the config's ``reset_noise_enabled``)."""
+        return self.command.start_state(noise=self.cfg.command.reset_noise_enabled if noise is None else noise)
+
+    def _success(self, terminated: torch.Tensor, truncated: torch.Tensor, clip_ended: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the episode ended this step without a termination (time-out or clip end)."""
+        return truncated
 
     def _clear_episode(self, mask: torch.Tensor) -> None:
         rows = mask[:, None]
@@ -224,7 +233,8 @@ class TrackingTask:
         return TrackingState(
             body_names=self.cfg.command.tracked_bodies, anchor=self._anchor, end_effectors=self._end_effectors,
             contact_body_names=b.contact_body_names,
-            joint_pos=qpos[:, 7:], joint_vel=qvel[:, 6:], root_quat_w=qpos[:, 3:7],
+            joint_pos=qpos[:, 7:7 + robot.NUM_JOINTS], joint_vel=qvel[:, 6:6 + robot.NUM_JOINTS],
+            root_quat_w=qpos[:, 3:7],
             root_lin_vel_b=lin_b, root_ang_vel_b=ang_b,
             body_pos_w=body_pos, body_quat_w=body_quat,
             body_lin_vel_w=b.body_lin_vel_w[:, ids], body_ang_vel_w=b.body_ang_vel_w[:, ids],

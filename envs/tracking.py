@@ -98,13 +98,14 @@ class TrackEnv(gym.Env):
     """One tracking env on CPU MuJoCo (Gymnasium single-env API, NumPy arrays)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
+    make_task = staticmethod(make_task)
 
     def __init__(self, reference: ReferenceSource, render_mode: str | None = None,
                  cfg: TrackEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0,
                  width: int = 640, height: int = 480):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}")
-        self.task = make_task(reference, 1, "mujoco", "cpu", cfg, evaluation, seed, autoreset=False)
+        self.task = self.make_task(reference, 1, "mujoco", "cpu", cfg, evaluation, seed, autoreset=False)
         self.render_mode = render_mode
         self.metadata = {**self.metadata, "render_fps": int(round(1.0 / self.task.step_dt))}
         self.observation_space = _obs_space(self.task)
@@ -129,13 +130,8 @@ class TrackEnv(gym.Env):
         if self.render_mode != "rgb_array":
             return None
         if self._renderer is None:
-            from envs.render import TrackingRenderer
-
-            self._renderer = TrackingRenderer(*self._render_size)
-        task = self.task
-        qpos = task.backend.qpos[0].double().numpy()
-        ghost = task.motion.qpos(task.command.rows)[0].double().numpy()
-        return self._renderer.render(qpos, ghost)
+            self._renderer = self._make_renderer()
+        return self._renderer.render(self.task.backend.qpos[0].double().numpy(), self._ghost_qpos())
 
     def close(self):
         if self._renderer is not None:
@@ -144,6 +140,15 @@ class TrackEnv(gym.Env):
 
     def policy_metadata(self) -> dict:
         return self.task.policy_metadata()
+
+    def _make_renderer(self):
+        from envs.render import TrackingRenderer
+
+        return TrackingRenderer(*self._render_size)
+
+    def _ghost_qpos(self) -> np.ndarray:
+        """The reference configuration at the target frame, in the simulation's qpos layout."""
+        return self.task.motion.qpos(self.task.command.rows)[0].double().numpy()
 
     def _numpy(self, obs: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
         return {k: v[0].numpy().astype(np.float32, copy=True) for k, v in obs.items()}
@@ -158,10 +163,11 @@ class TrackVecEnv(VectorEnv):
     """N tracking envs on one device (torch in/out, same-step autoreset). See the module docstring."""
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    make_task = staticmethod(make_task)
 
     def __init__(self, num_envs: int, reference: ReferenceSource, device: str = "cuda", backend: str = "warp",
                  cfg: TrackEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0):
-        self.task = make_task(reference, num_envs, backend, device, cfg, evaluation, seed, autoreset=True)
+        self.task = self.make_task(reference, num_envs, backend, device, cfg, evaluation, seed, autoreset=True)
         self.num_envs = num_envs
         self.device = self.task.device
         self.single_observation_space = _obs_space(self.task)

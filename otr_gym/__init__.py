@@ -22,3 +22,9 @@ if "OTR-G1-Track-v0" not in gymnasium.registry:
         entry_point="envs.tracking:TrackEnv",
         vector_entry_point="envs.tracking:TrackVecEnv",
     )
+if "OTR-G1-BoxTrack-v0" not in gymnasium.registry:
+    gymnasium.register(
+        id="OTR-G1-BoxTrack-v0",
+        entry_point="envs.box:BoxTrackEnv",
+        vector_entry_point="envs.box:BoxTrackVecEnv",
+    )

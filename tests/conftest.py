@@ -39,3 +39,79 @@ def walking_reference(tmp_path_factory) -> Path:
     from agents.procedural import walking_reference as walk
 
     return walk(WalkSpec(steps=4, fps=30.0)).save(tmp_path_factory.mktemp("refs") / "walk.npz")
+
+
+# ------------------------------------------------------------------ a generated box reference
+BOX_HALF_M = 0.1
+TABLE_TOP_M = 0.75
+
+
+def _box_clip(annotated: bool):
+    """The G1 standing still (3 s at 50 fps) while a 20 cm box moves through known contact
+    windows (frame ranges):
+
+    - [0, 40): on the floor 0.6 m ahead (box–ground window);
+    - [60, 100): 1 cm to the left of the left hand's collision capsule (left hand window);
+    - [110, 151): on a static table (box–table window);
+    - in between it glides through the air, away from everything.
+
+    With ``annotated``, the file carries contact annotations whose hand windows differ from the
+    geometry on purpose: left hand [60, 100), right hand [70, 90).
+    """
+    import numpy as np
+    import trimesh
+
+    from otr_gym import robot
+    from otr_gym.reference import ContactAnnotations, ObjectTrack, Reference
+    from otr_gym.rotations import linear_velocity_from_positions, quat_apply
+
+    fps, frames = 50.0, 151
+    qpos = np.tile(robot.default_qpos(), (frames, 1))
+    ref = Reference.from_qpos(qpos, fps)
+    left = ref.body_index(["left_wrist_yaw_link"])[0]
+    hand = ref.body_pos_w[0, left] + quat_apply(ref.body_quat_w[0, left], np.array([0.11, 0.0, 0.0]))
+    floor = np.array([0.6, 0.0, BOX_HALF_M])
+    beside = hand + np.array([0.0, 0.035 + 0.01 + BOX_HALF_M, 0.0])
+    table_xy = np.array([1.3, 0.0])
+    on_table = np.array([table_xy[0], table_xy[1], TABLE_TOP_M + BOX_HALF_M])
+    air = np.array([0.9, 0.6, 1.2])
+    keys = [(0, floor), (39, floor), (49, air), (60, beside), (99, beside), (104, air), (110, on_table),
+            (150, on_table)]
+    t = np.arange(frames)
+    pos = np.stack([np.interp(t, [k for k, _ in keys], [p[i] for _, p in keys]) for i in range(3)], axis=1)
+    ident = np.tile([1.0, 0.0, 0.0, 0.0], (frames, 1))
+    box = trimesh.creation.box(extents=(2 * BOX_HALF_M,) * 3)
+    pieces = [trimesh.creation.box(extents=(0.6, 0.6, 0.04),
+                                   transform=trimesh.transformations.translation_matrix((0, 0, TABLE_TOP_M - 0.02)))]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            pieces.append(trimesh.creation.box(extents=(0.04, 0.04, TABLE_TOP_M - 0.04),
+                                               transform=trimesh.transformations.translation_matrix(
+                                                   (sx * 0.26, sy * 0.26, 0.5 * (TABLE_TOP_M - 0.04)))))
+    table = trimesh.util.concatenate(pieces)
+    objects = [
+        ObjectTrack("box", pos, ident.copy(), linear_velocity_from_positions(pos, 1 / fps), np.zeros((frames, 3)),
+                    np.asarray(box.vertices), np.asarray(box.faces)),
+        ObjectTrack("table", np.tile([*table_xy, 0.0], (frames, 1)), ident.copy(), np.zeros((frames, 3)),
+                    np.zeros((frames, 3)), np.asarray(table.vertices), np.asarray(table.faces)),
+    ]
+    contacts = None
+    if annotated:
+        distance = np.full((frames, 2, 3), 0.3)
+        distance[60:100, 0, 1] = 0.01
+        distance[70:90, 1, 1] = 0.01
+        contacts = ContactAnnotations(("left_wrist_yaw_link", "right_wrist_yaw_link"), ("ground", "box", "table"),
+                                      distance)
+    return Reference.from_qpos(qpos, fps, objects=objects, contacts=contacts, metadata={"source": "test box clip"})
+
+
+@pytest.fixture(scope="session")
+def box_reference(tmp_path_factory) -> Path:
+    """The generated box clip with contact annotations (see ``_box_clip``)."""
+    return _box_clip(annotated=True).save(tmp_path_factory.mktemp("refs") / "box_annotated.npz")
+
+
+@pytest.fixture(scope="session")
+def box_reference_geometry(tmp_path_factory) -> Path:
+    """The same clip without annotations: windows come from the reference geometry."""
+    return _box_clip(annotated=False).save(tmp_path_factory.mktemp("refs") / "box_plain.npz")

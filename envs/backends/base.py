@@ -27,7 +27,7 @@ class PhysicsBackend(ABC):
     """
 
     def __init__(self, model: mujoco.MjModel, num_worlds: int, device: torch.device, decimation: int,
-                 contact_body_names: Sequence[str]):
+                 contact_body_names: Sequence[str], contact_pair_keys: Sequence[str] = ()):
         if num_worlds < 1:
             raise ValueError(f"num_worlds must be >= 1, got {num_worlds}")
         if decimation < 1:
@@ -37,6 +37,7 @@ class PhysicsBackend(ABC):
         self.device = torch.device(device)
         self.decimation = int(decimation)
         self.contact_body_names = tuple(contact_body_names)
+        self.contact_pair_keys = tuple(contact_pair_keys)
         self._root_ids = torch.as_tensor(model.body_rootid, dtype=torch.long, device=self.device)
 
     # ------------------------------------------------------------ raw views (N, ...)
@@ -72,9 +73,20 @@ class PhysicsBackend(ABC):
 
     @property
     @abstractmethod
+    def _contact_forces(self) -> torch.Tensor:
+        """(N, C + P) contact-force maxima of the bodies, then of the pairs."""
+
+    @property
     def contact_force_n(self) -> torch.Tensor:
         """(N, C) per ``contact_body_names``: the largest net contact force norm (N) seen over
         the substeps of the last ``step`` (zero after ``reset``)."""
+        return self._contact_forces[:, :len(self.contact_body_names)]
+
+    @property
+    def pair_force_n(self) -> torch.Tensor:
+        """(N, P) per ``contact_pair_keys``: the largest norm (N) of the net force between the
+        pair's two objects over the substeps of the last ``step`` (zero after ``reset``)."""
+        return self._contact_forces[:, len(self.contact_body_names):]
 
     # ------------------------------------------------------------ actions
     @abstractmethod
@@ -105,7 +117,16 @@ class PhysicsBackend(ABC):
         """Move the centre of mass of ``body_id`` by ``offset`` (N, 3) (m, body frame) from
         its MJCF value."""
 
+    @abstractmethod
+    def set_body_mass(self, body_id: int, mass_kg: torch.Tensor, inertia_scale: torch.Tensor) -> None:
+        """Per world: the mass of ``body_id`` (N,) (kg) and its MJCF principal inertia scaled by
+        ``inertia_scale`` (N,)."""
+
     # ------------------------------------------------------------ derived views
+    @property
+    def _contact_sensor_names(self) -> tuple[str, ...]:
+        return self.contact_body_names + self.contact_pair_keys
+
     @property
     def body_ang_vel_w(self) -> torch.Tensor:
         """(N, nbody, 3) body angular velocities (rad/s, world)."""

@@ -1,4 +1,4 @@
-"""The simulation model of the tracking task: G1 + flat ground, collision geometry only.
+"""The simulation model of the tracking tasks: G1 + flat ground (+ objects), collision geometry only.
 
 Both backends simulate this one model, so their physics agree. Differences from the scene
 used for rendering (``otr_gym.scene`` with ``visual=True``):
@@ -8,12 +8,16 @@ used for rendering (``otr_gym.scene`` with ``visual=True``):
   accelerometer/angular-momentum sensors would force an extra ``rne_postconstraint`` pass
   per substep;
 - one MuJoCo contact sensor per body in ``contact_bodies`` reports the net contact force on
-  that body (``data="force"``, ``reduce="netforce"``), the same on CPU and GPU.
+  that body (``data="force"``, ``reduce="netforce"``), the same on CPU and GPU;
+- with objects (OTR-G1-BoxTrack-v0, ``envs.objects``): their bodies, plus one contact sensor
+  per ``ContactPair`` reporting the net force between exactly those two (a hand and the box,
+  the box and the table or the ground).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import mujoco
 import numpy as np
@@ -25,9 +29,26 @@ _DATA_FORCE = 1 << int(mujoco.mjtConDataField.mjCONDATA_FORCE)
 _REDUCE_NETFORCE = 3
 
 
-def build_sim_model(contact_bodies: Sequence[str]) -> mujoco.MjModel:
-    """Compile the G1 + ground model without visual meshes, with contact sensors on ``contact_bodies``."""
+@dataclass(frozen=True)
+class ContactPair:
+    """A contact sensor between two model objects, each ("body" | "geom", name)."""
+
+    key: str
+    first: tuple[str, str]
+    second: tuple[str, str]
+
+
+_OBJ_TYPES = {"body": mujoco.mjtObj.mjOBJ_BODY, "geom": mujoco.mjtObj.mjOBJ_GEOM}
+
+
+def build_sim_model(contact_bodies: Sequence[str], objects=None, contact_pairs: Sequence[ContactPair] = (),
+                    condim: int = 3) -> mujoco.MjModel:
+    """Compile the G1 + ground model without visual meshes, with contact sensors on
+    ``contact_bodies``; ``objects`` (``envs.objects.SceneObjects``) and their ``contact_pairs``
+    sensors are added when given."""
     spec = build_scene(SceneSpec(visual=False)).spec
+    if objects is not None:
+        objects.add_to(spec, visual=False, condim=condim)
     for sensor in list(spec.sensors):
         spec.delete(sensor)
     body_names = {b.name for b in spec.bodies}
@@ -37,10 +58,15 @@ def build_sim_model(contact_bodies: Sequence[str]) -> mujoco.MjModel:
     for body in contact_bodies:
         spec.add_sensor(name=_CONTACT_SENSOR_PREFIX + body, type=mujoco.mjtSensor.mjSENS_CONTACT,
                         objtype=mujoco.mjtObj.mjOBJ_BODY, objname=body, intprm=[_DATA_FORCE, _REDUCE_NETFORCE, 1])
+    for pair in contact_pairs:
+        spec.add_sensor(name=_CONTACT_SENSOR_PREFIX + pair.key, type=mujoco.mjtSensor.mjSENS_CONTACT,
+                        objtype=_OBJ_TYPES[pair.first[0]], objname=pair.first[1],
+                        reftype=_OBJ_TYPES[pair.second[0]], refname=pair.second[1],
+                        intprm=[_DATA_FORCE, _REDUCE_NETFORCE, 1])
     return spec.compile()
 
 
 def contact_sensor_adr(model: mujoco.MjModel, contact_bodies: Sequence[str]) -> np.ndarray:
-    """(C,) start of each body's 3 force values in ``sensordata``."""
+    """(C,) start of each body's (or contact pair key's) 3 force values in ``sensordata``."""
     return np.array([model.sensor_adr[model.sensor(_CONTACT_SENSOR_PREFIX + b).id] for b in contact_bodies],
                     dtype=np.int32)

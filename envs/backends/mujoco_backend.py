@@ -22,18 +22,19 @@ class MuJoCoBackend(PhysicsBackend):
     """``num_worlds`` independent MuJoCo simulations of ``model`` (CPU)."""
 
     def __init__(self, model: mujoco.MjModel, num_worlds: int = 1, decimation: int = 4,
-                 contact_bodies: Sequence[str] = ()):
-        super().__init__(model, num_worlds, torch.device("cpu"), decimation, contact_bodies)
+                 contact_bodies: Sequence[str] = (), contact_pairs: Sequence[str] = ()):
+        super().__init__(model, num_worlds, torch.device("cpu"), decimation, contact_bodies, contact_pairs)
         self._models = [copy.deepcopy(model) for _ in range(num_worlds)]
         self._datas = [mujoco.MjData(m) for m in self._models]
         for m, d in zip(self._models, self._datas, strict=True):
             if m.nkey > 0:
                 mujoco.mj_resetDataKeyframe(m, d, 0)
             mujoco.mj_forward(m, d)
-        adr = contact_sensor_adr(model, self.contact_body_names)
+        adr = contact_sensor_adr(model, self._contact_sensor_names)
         self._force_cols = (adr[:, None] + np.arange(3)).reshape(-1)
         self._body_ipos0 = model.body_ipos.copy()
-        self._contact = torch.zeros(num_worlds, len(self.contact_body_names))
+        self._body_inertia0 = model.body_inertia.copy()
+        self._contact = torch.zeros(num_worlds, len(self._contact_sensor_names))
         self._pull()
 
     # ------------------------------------------------------------ views
@@ -62,13 +63,13 @@ class MuJoCoBackend(PhysicsBackend):
         return self._subtree_com_t
 
     @property
-    def contact_force_n(self) -> torch.Tensor:
+    def _contact_forces(self) -> torch.Tensor:
         return self._contact
 
     # ------------------------------------------------------------ actions
     def step(self, ctrl: torch.Tensor) -> None:
         ctrl = ctrl.detach().to("cpu", torch.float64).numpy()
-        forces = np.zeros((self.num_worlds, len(self.contact_body_names)))
+        forces = np.zeros((self.num_worlds, len(self._contact_sensor_names)))
         for w, (m, d) in enumerate(zip(self._models, self._datas, strict=True)):
             d.ctrl[:] = ctrl[w]
             for _ in range(self.decimation):
@@ -106,6 +107,13 @@ class MuJoCoBackend(PhysicsBackend):
         offset = offset.detach().cpu().double().numpy()
         for w, m in enumerate(self._models):
             m.body_ipos[body_id] = self._body_ipos0[body_id] + offset[w]
+
+    def set_body_mass(self, body_id: int, mass_kg: torch.Tensor, inertia_scale: torch.Tensor) -> None:
+        mass = mass_kg.detach().cpu().double().numpy()
+        scale = inertia_scale.detach().cpu().double().numpy()
+        for w, m in enumerate(self._models):
+            m.body_mass[body_id] = mass[w]
+            m.body_inertia[body_id] = self._body_inertia0[body_id] * scale[w]
 
     # ------------------------------------------------------------ internals
     @staticmethod

@@ -45,20 +45,23 @@ class WarpBackend(PhysicsBackend):
     """``num_worlds`` worlds of ``model`` on MuJoCo-Warp (device "cuda", "cuda:K" or "cpu").
 
     ``nconmax``/``njmax`` are per world (MuJoCo-Warp 4.0). ``per_world_fields`` lists Model
-    fields that get one copy per world (domain randomisation: ``geom_friction``, ``body_ipos``);
-    the others are shared.
+    fields that get one copy per world (domain randomisation: ``geom_friction``, ``body_ipos``,
+    ``body_mass``, ``body_inertia``); the others are shared. ``contact_pairs`` are the keys of
+    the model's pair contact sensors (``envs.backends.model.ContactPair``).
     """
 
     def __init__(self, model: mujoco.MjModel, num_worlds: int, device: str = "cuda", decimation: int = 4,
                  contact_bodies: Sequence[str] = (), nconmax: int = 40, njmax: int = 256,
-                 per_world_fields: Sequence[str] = (), graph_capture: bool = True):
+                 per_world_fields: Sequence[str] = (), graph_capture: bool = True,
+                 contact_pairs: Sequence[str] = ()):
         wp.init()
         try:
             wp_device = wp.get_device(device)
         except (RuntimeError, ValueError) as exc:
             raise RuntimeError(f"warp device '{device}' is not available ({exc}); "
                                f"available: {[str(d) for d in wp.get_devices()]}") from exc
-        super().__init__(model, num_worlds, torch.device(wp.device_to_torch(wp_device)), decimation, contact_bodies)
+        super().__init__(model, num_worlds, torch.device(wp.device_to_torch(wp_device)), decimation, contact_bodies,
+                         contact_pairs)
         self._wp_device = wp_device
         data = mujoco.MjData(model)
         if model.nkey > 0:
@@ -71,8 +74,8 @@ class WarpBackend(PhysicsBackend):
             # printf from thousands of worlds per substep would flood the log and stall the step.
             self._m.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
             self._d = mjw.put_data(model, data, nworld=num_worlds, nconmax=nconmax, njmax=njmax)
-            self._adr = wp.array(contact_sensor_adr(model, self.contact_body_names), dtype=wp.int32)
-            self._contact_max = wp.zeros((num_worlds, len(self.contact_body_names)), dtype=float)
+            self._adr = wp.array(contact_sensor_adr(model, self._contact_sensor_names), dtype=wp.int32)
+            self._contact_max = wp.zeros((num_worlds, len(self._contact_sensor_names)), dtype=float)
         d, m = self._d, self._m
         self._qpos_t, self._qvel_t, self._ctrl_t = wp.to_torch(d.qpos), wp.to_torch(d.qvel), wp.to_torch(d.ctrl)
         self._warmstart_t = wp.to_torch(d.qacc_warmstart)
@@ -82,6 +85,8 @@ class WarpBackend(PhysicsBackend):
         self._friction_t = wp.to_torch(m.geom_friction)
         self._body_ipos_t = wp.to_torch(m.body_ipos)
         self._body_ipos0 = self._body_ipos_t[0].clone()
+        self._body_mass_t, self._body_inertia_t = wp.to_torch(m.body_mass), wp.to_torch(m.body_inertia)
+        self._body_inertia0 = self._body_inertia_t[0].clone()
         self._step_graph = self._refresh_graph = None
         if graph_capture:
             with wp.ScopedDevice(wp_device):
@@ -118,7 +123,7 @@ class WarpBackend(PhysicsBackend):
         return self._subtree_com_v
 
     @property
-    def contact_force_n(self) -> torch.Tensor:
+    def _contact_forces(self) -> torch.Tensor:
         return self._contact_t
 
     @property
@@ -162,12 +167,19 @@ class WarpBackend(PhysicsBackend):
         self._require_per_world(self._body_ipos_t, "body_ipos")
         self._body_ipos_t[:, body_id] = self._body_ipos0[body_id] + offset.to(self.device, torch.float32)
 
+    def set_body_mass(self, body_id: int, mass_kg: torch.Tensor, inertia_scale: torch.Tensor) -> None:
+        self._require_per_world(self._body_mass_t, "body_mass")
+        self._require_per_world(self._body_inertia_t, "body_inertia")
+        self._body_mass_t[:, body_id] = mass_kg.to(self.device, torch.float32)
+        scale = inertia_scale.to(self.device, torch.float32)[:, None]
+        self._body_inertia_t[:, body_id] = self._body_inertia0[body_id] * scale
+
     # ------------------------------------------------------------ internals
     def _physics(self) -> None:
         self._contact_max.zero_()
         for _ in range(self.decimation):
             mjw.step(self._m, self._d)
-            if self.contact_body_names:
+            if self._contact_sensor_names:
                 wp.launch(_max_contact_force, dim=self._contact_max.shape,
                           inputs=[self._d.sensordata, self._adr], outputs=[self._contact_max])
         self._refresh()

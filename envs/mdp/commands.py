@@ -20,6 +20,7 @@ of the envs to reset, so no step needs a device→host synchronisation.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -29,6 +30,17 @@ from otr_gym import robot
 from otr_gym.rotations import quat_apply_inverse, quat_from_euler_xyz, quat_mul
 
 START_MODES = ("adaptive", "uniform", "zero")
+
+
+@dataclass(frozen=True)
+class RootNoise:
+    """The reset noise of the robot root: the start pose is (turn·q, p + shift) about the
+    root, its velocities (v + lin, ω + ang), all world frame (N, ·)."""
+
+    shift: torch.Tensor  # (N, 3) m
+    turn: torch.Tensor  # (N, 4) wxyz
+    lin: torch.Tensor  # (N, 3) m/s
+    ang: torch.Tensor  # (N, 3) rad/s
 CLIP_END_MODES = ("resample", "truncate")
 
 
@@ -61,6 +73,7 @@ class MotionCommand:
             "pos": n.root_pos_m, "rpy": n.root_rpy_rad, "lin": n.root_lin_vel_mps, "ang": n.root_ang_vel_radps,
             "joint": (n.joint_pos_rad,) * robot.NUM_JOINTS}.items()}
         self._log_num_bins = math.log(max(num_bins, 2))
+        self.root_noise: RootNoise | None = None  # of the last start_state
 
     # ------------------------------------------------------------ current frame
     @property
@@ -137,18 +150,25 @@ class MotionCommand:
     # ------------------------------------------------------------ robot state at the start frame
     def start_state(self, noise: bool) -> tuple[torch.Tensor, torch.Tensor]:
         """(qpos (N, 36), qvel (N, 35)) of every env's start frame, plus the uniform reset
-        noise of §2 when ``noise``. qvel's angular part is in the pelvis frame."""
+        noise of §2 when ``noise`` (kept in ``root_noise`` for objects that move with the
+        robot). qvel's angular part is in the pelvis frame."""
         m, rows = self.motion, self.start_rows
         pos, quat = m.root_pos_w[rows], m.root_quat_w[rows]
         lin, ang = m.root_lin_vel_w[rows], m.root_ang_vel_w[rows]
         joints = m.joint_pos[rows]
+        self.root_noise = None
         if noise:
             rpy = self._uniform("rpy")
-            pos = pos + self._uniform("pos")
-            quat = quat_mul(quat_from_euler_xyz(rpy[:, 0], rpy[:, 1], rpy[:, 2]), quat)
-            lin = lin + self._uniform("lin")
-            ang = ang + self._uniform("ang")
+            turn = quat_from_euler_xyz(rpy[:, 0], rpy[:, 1], rpy[:, 2])
+            shift = self._uniform("pos")
+            pos = pos + shift
+            quat = quat_mul(turn, quat)
+            kick_lin = self._uniform("lin")
+            lin = lin + kick_lin
+            kick_ang = self._uniform("ang")
+            ang = ang + kick_ang
             joints = torch.clamp(joints + self._uniform("joint"), self._soft_lower, self._soft_upper)
+            self.root_noise = RootNoise(shift, turn, kick_lin, kick_ang)
         qpos = torch.cat([pos, quat, joints], dim=-1)
         qvel = torch.cat([lin, quat_apply_inverse(quat, ang), m.joint_vel[rows]], dim=-1)
         return qpos, qvel

@@ -1,10 +1,11 @@
-"""Tracking error metrics shared by logging and evaluation."""
+"""Tracking error metrics shared by logging and evaluation (robot and, for the box task, objects)."""
 
 from __future__ import annotations
 
 import torch
 
 from envs.mdp.state import TrackingState
+from otr_gym.rotations import quat_error_angle
 
 
 def mpjpe_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
@@ -14,3 +15,13 @@ def mpjpe_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
     robot_rel = s.body_pos_w - s.body_pos_w[:, r : r + 1]
     ref_rel = s.ref_body_pos_w - s.ref_body_pos_w[:, r : r + 1]
     return torch.linalg.norm(robot_rel - ref_rel, dim=-1).mean(-1)
+
+
+def object_position_error_m(s: TrackingState) -> torch.Tensor:
+    """(N, M) distance (m, world) of each moving object from its reference position."""
+    return torch.linalg.norm(s.objects.ref_pos_w - s.objects.pos_w, dim=-1)
+
+
+def object_orientation_error_rad(s: TrackingState) -> torch.Tensor:
+    """(N, M) rotation angle (rad) between each moving object and its reference orientation."""
+    return quat_error_angle(s.objects.ref_quat_w, s.objects.quat_w)

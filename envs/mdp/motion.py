@@ -67,7 +67,13 @@ class MotionLibrary:
         wrong joint set, NaN, missing tracked bodies, or a clip shorter than ``min_clip_frames``
         after resampling.
         """
-        refs = [_prepared(r, body_names, fps, min_clip_frames) for r in _expand(source)]
+        return cls.from_references(prepared_references(source, body_names, fps, min_clip_frames), body_names, fps,
+                                   device)
+
+    @classmethod
+    def from_references(cls, refs: Sequence[Reference], body_names: Sequence[str], fps: float,
+                        device: str | torch.device = "cpu") -> MotionLibrary:
+        """The library of references already prepared by ``prepared_references``."""
         lengths = [r.num_frames for r in refs]
         starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
 
@@ -88,6 +94,13 @@ class MotionLibrary:
             body_lin_vel_w=cat(lambda r: bodies(r, r.body_lin_vel_w)),
             body_ang_vel_w=cat(lambda r: bodies(r, r.body_ang_vel_w)),
         )
+
+
+def prepared_references(source: ReferenceSource, body_names: Sequence[str], fps: float = 50.0,
+                        min_clip_frames: int = 2) -> list[Reference]:
+    """Every clip of ``source`` loaded, checked, resampled to ``fps`` with finite-difference
+    velocities (objects included), in library order."""
+    return [_prepared(r, body_names, fps, min_clip_frames) for r in _expand(source)]
 
 
 def _expand(source: ReferenceSource) -> list[Reference | Path]:

@@ -1,5 +1,6 @@
 """Domain randomisation (RL_SPEC §6): friction, torso centre of mass and default-pose bias
-drawn once per env at start-up; velocity pushes at random 1–3 s intervals.
+drawn once per env at start-up; velocity pushes at random 1–3 s intervals; for the box task,
+the objects' friction, mass and inertia at start-up (``randomize_objects``).
 
 All draws use the environment's torch generator; pushes are masked updates of every env
 (no host synchronisation).
@@ -7,11 +8,13 @@ All draws use the environment's torch generator; pushes are masked updates of ev
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import mujoco
 import torch
 
 from envs.backends.base import PhysicsBackend
-from envs.config import RandomizationCfg
+from envs.config import ObjectRandomizationCfg, RandomizationCfg
 from otr_gym import robot
 from otr_gym.rotations import quat_apply_inverse
 
@@ -63,3 +66,26 @@ class DomainRandomizer:
 
     def _rand(self, *shape: int) -> torch.Tensor:
         return torch.rand(*shape, device=self.device, generator=self.gen)
+
+
+def randomize_objects(backend: PhysicsBackend, bodies: Sequence[str], mass_kg: Sequence[float],
+                      cfg: ObjectRandomizationCfg, generator: torch.Generator) -> dict[str, torch.Tensor]:
+    """Per env and object body (one draw each): the sliding friction of all its geoms, its mass
+    (nominal + U[mass_add_kg]) and its inertia (× U[inertia_scale]). Returns the draws."""
+    n, m = backend.num_worlds, backend.model
+    out = {}
+
+    def uniform(lo: float, hi: float) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(n, device=backend.device, generator=generator)
+
+    for body, mass in zip(bodies, mass_kg, strict=True):
+        bid = backend.body_ids([body])[0]
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == bid and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        friction = uniform(*cfg.friction_range)
+        backend.set_geom_friction(geoms, friction[:, None].expand(-1, len(geoms)))
+        added = mass + uniform(*cfg.mass_add_kg)
+        scale = uniform(*cfg.inertia_scale)
+        # the MJCF inertia belongs to the nominal mass: scale it with the mass, then by the draw
+        backend.set_body_mass(bid, added, scale * added / mass)
+        out[body] = torch.stack([friction, added, scale], dim=-1)
+    return out

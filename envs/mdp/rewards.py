@@ -83,3 +83,61 @@ def _soft_limits(factor: float, device: torch.device) -> tuple[torch.Tensor, tor
 @cache
 def _kept_columns(names: tuple[str, ...], exclude: tuple[str, ...], device: torch.device) -> torch.Tensor:
     return torch.tensor([not any(e in n for e in exclude) for n in names], dtype=torch.bool, device=device)
+
+
+# ------------------------------------------------------------------ objects (OTR-G1-BoxTrack-v0)
+# Means over the M moving objects; world frame (the reference object pose is not re-aligned).
+
+
+def object_position_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_m ‖p_ref − p‖²/σ²) (§4 HS object position, σ in m)."""
+    o = s.objects
+    return torch.exp(-torch.sum(torch.square(o.ref_pos_w - o.pos_w), dim=-1).mean(-1) / sigma**2)
+
+
+def object_orientation_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_m angle²/σ²) (§4 HS object orientation, σ in rad)."""
+    o = s.objects
+    return torch.exp(-torch.square(quat_error_angle(o.ref_quat_w, o.quat_w)).mean(-1) / sigma**2)
+
+
+def object_linear_velocity_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_m ‖v_ref − v‖²/σ²), world (§4 FK object velocity tracking, σ in m/s)."""
+    o = s.objects
+    return torch.exp(-torch.sum(torch.square(o.ref_lin_vel_w - o.lin_vel_w), dim=-1).mean(-1) / sigma**2)
+
+
+def object_angular_velocity_error_exp(s: TrackingState, sigma: float) -> torch.Tensor:
+    """exp(−mean_m ‖ω_ref − ω‖²/σ²), world (§4 FK object velocity tracking, σ in rad/s)."""
+    o = s.objects
+    return torch.exp(-torch.sum(torch.square(o.ref_ang_vel_w - o.ang_vel_w), dim=-1).mean(-1) / sigma**2)
+
+
+def hand_contact_force_setpoint(s: TrackingState, sigma_pos_m: float, tolerance_m: float, force_threshold_n: float,
+                                sigma_force_n: float, gain: float) -> torch.Tensor:
+    """HDMI's contact reward (§4 HDMI original), per hand h and object m, averaged:
+
+    r = exp(−max(‖p_eef − p_tgt‖ − tol, 0)/σ_pos) · exp(min(‖F‖ − F_th, 0)/σ_F), value
+    r·c·gain + (1 − c), with c the robot–object gate. The force factor is a set-point: 1 once
+    the hand–object force reaches F_th. p_tgt is the reference hand point placed on the
+    simulated object; outside a window (c = 0) the value is 1 whatever the hand does.
+    """
+    o = s.objects
+    dist = torch.linalg.norm(o.hand_pos_w[:, :, None] - o.hand_target_w, dim=-1)  # (N, H, M)
+    r = torch.exp(-(dist - tolerance_m).clamp_min(0.0) / sigma_pos_m) * \
+        torch.exp((o.hand_force_n - force_threshold_n).clamp_max(0.0) / sigma_force_n)
+    c = o.hand_gate
+    return (r * c * gain + (1.0 - c)).flatten(1).mean(-1)
+
+
+def support_contact_force_setpoint(s: TrackingState, force_threshold_n: float, sigma_force_n: float,
+                                   gain: float) -> torch.Tensor:
+    """The same set-point for objects on their supports (table, ground): per object m and
+    support k, r = exp(min(‖F_mk‖ − F_th, 0)/σ_F), value r·c·gain + (1 − c) with c the
+    object–support gate, averaged over pairs (1 when there are none)."""
+    o = s.objects
+    if o.support_gate.shape[-1] == 0:
+        return torch.ones(o.pos_w.shape[0], device=o.pos_w.device)
+    r = torch.exp((o.support_force_n - force_threshold_n).clamp_max(0.0) / sigma_force_n)
+    c = o.support_gate
+    return (r * c * gain + (1.0 - c)).flatten(1).mean(-1)

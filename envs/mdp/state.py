@@ -2,7 +2,8 @@
 the anchor-aligned targets, and the policy's actions. Built once per step, so terms stay
 plain functions of one argument (plus their config parameters) and nothing is computed twice.
 
-Shapes: N envs, K tracked bodies (``body_names``), 29 joints, C contact-sensor bodies.
+Shapes: N envs, K tracked bodies (``body_names``), 29 joints, C contact-sensor bodies; with
+objects (``ObjectState``) M moving objects, H hands, S supports.
 Frames: ``_w`` world, ``_b`` robot body frame; quaternions wxyz; SI units.
 
 Alignment (RL_SPEC §2): Δq = yaw(q_robotAnchor · q_refAnchor⁻¹); body target orientation
@@ -17,6 +18,30 @@ from dataclasses import dataclass
 import torch
 
 from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_conj, quat_mul, quat_yaw
+
+
+@dataclass(frozen=True)
+class ObjectState:
+    """Moving objects (M), hands (H) and supports (S) of OTR-G1-BoxTrack-v0 (``envs.mdp.objects``)."""
+
+    names: tuple[str, ...]
+    support_names: tuple[str, ...]
+    pos_w: torch.Tensor  # (N, M, 3)
+    quat_w: torch.Tensor  # (N, M, 4)
+    lin_vel_w: torch.Tensor  # (N, M, 3) m/s, of the object origin
+    ang_vel_w: torch.Tensor  # (N, M, 3) rad/s, world
+    ref_pos_w: torch.Tensor  # (N, M, 3) reference at the current frame
+    ref_quat_w: torch.Tensor  # (N, M, 4)
+    ref_lin_vel_w: torch.Tensor  # (N, M, 3)
+    ref_ang_vel_w: torch.Tensor  # (N, M, 3)
+    hand_pos_w: torch.Tensor  # (N, H, 3) robot hand points p_eef
+    hand_target_w: torch.Tensor  # (N, H, M, 3) reference hand point placed on the simulated object
+    hand_gate: torch.Tensor  # (N, H, M) robot–object windows, [0, 1]
+    hand_force_n: torch.Tensor  # (N, H, M) hand–object contact force (max over the step's substeps)
+    support_gate: torch.Tensor  # (N, M, S) object–support windows, [0, 1]
+    support_force_n: torch.Tensor  # (N, M, S) object–support contact force
+    static_pos_w: torch.Tensor  # (K, 3) static objects (fixed)
+    static_quat_w: torch.Tensor  # (K, 4)
 
 
 @dataclass(frozen=True)
@@ -50,6 +75,8 @@ class TrackingState:
     action: torch.Tensor  # (N, 29) raw action of the last step
     last_action: torch.Tensor  # (N, 29) the one before
     default_joint_pos: torch.Tensor  # (N, 29) PD zero (default pose + per-env bias)
+    # OTR-G1-BoxTrack-v0 only
+    objects: ObjectState | None = None
 
     @property
     def anchor_pos_w(self) -> torch.Tensor:

@@ -26,3 +26,9 @@ def end_effector_height_error(s: TrackingState, threshold_m: float) -> torch.Ten
     ee = s.end_effectors
     err = torch.abs(s.ref_body_pos_aligned_w[:, ee, 2] - s.body_pos_w[:, ee, 2])
     return torch.any(err > threshold_m, dim=-1)
+
+
+def object_position_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
+    """Any moving object farther than threshold (m) from its reference position (§5 HS: 0.25 m)."""
+    o = s.objects
+    return torch.any(torch.linalg.norm(o.ref_pos_w - o.pos_w, dim=-1) > threshold_m, dim=-1)

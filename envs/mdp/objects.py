@@ -1,0 +1,269 @@
+"""Reference object motion and contact schedule, row-aligned with ``MotionLibrary``.
+
+Per library row (frame ``t`` of clip ``c`` at row ``clip_start[c] + t``), for the M moving
+objects, the H hands and the S supports (the ground when ``support_ground``, then the static
+objects):
+
+- object pose and velocity (world; wxyz; finite differences of the resampled poses);
+- ``hand_target_o`` (H, M, 3): the reference hand point p_eef (hand body origin + the hand
+  offset in the hand frame) in the object's frame: placed on the *simulated* object it is the
+  HDMI contact target, so the target moves with the box the robot actually holds;
+- ``hand_gate`` (H, M) and ``support_gate`` (M, S) in [0, 1]: the proximity windows.
+
+Windows (RL_SPEC preamble: "gated by robot–box and box–table proximity windows taken from our
+reference's contact annotations"): a frame is inside when the surface distance is below a
+threshold: ``proximity_threshold_m`` (default 5 cm) for a hand and an object,
+``support_threshold_m`` (2 cm) for an object and a support. Hand distances are the reference's
+``contact_distance`` annotation of the hand body against the object's channel when the file
+has it (ours do); otherwise (Holosoma's files) they are measured on the reference at load time
+with MuJoCo's ``mj_geomDistance`` between the hand's collision capsule and the object's
+collision shapes posed as in the reference. Object–support distances always come from the
+geometry (annotations are robot–channel only). Gaps shorter than ``window_min_gap_s`` are
+closed; inside a window the gate ramps linearly from 1/k to 1 over its first k =
+``window_ramp_s``·fps frames and is cut to 0 at its end (FK: "ramp the gate on and cut it off
+at once").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, fields, replace
+
+import mujoco
+import numpy as np
+import torch
+
+from envs.collision import BoxShape
+from envs.config import ObjectsCfg
+from envs.objects import GROUND_GEOM, SceneObjects
+from otr_gym.reference import Reference
+from otr_gym.rotations import quat_apply, quat_apply_inverse
+
+#: Upper bound handed to mj_geomDistance (m): anything farther is "far", which is all a window needs.
+_FAR_M = 0.5
+
+
+@dataclass(frozen=True)
+class ObjectLibrary:
+    names: tuple[str, ...]  # moving objects (M)
+    support_names: tuple[str, ...]  # supports (S): "ground" and/or static objects
+    hand_bodies: tuple[str, ...]  # hands (H)
+    window_source: tuple[str, ...]  # per clip: "annotations" or "geometry" (robot–object windows)
+    pos_w: torch.Tensor  # (F, M, 3)
+    quat_w: torch.Tensor  # (F, M, 4) wxyz
+    lin_vel_w: torch.Tensor  # (F, M, 3)
+    ang_vel_w: torch.Tensor  # (F, M, 3) world
+    hand_target_o: torch.Tensor  # (F, H, M, 3) reference hand point, object frame
+    hand_gate: torch.Tensor  # (F, H, M) in [0, 1]
+    support_gate: torch.Tensor  # (F, M, S) in [0, 1]
+    static_pos_w: torch.Tensor  # (K, 3) static objects (fixed bodies)
+    static_quat_w: torch.Tensor  # (K, 4)
+
+    def to(self, device: str | torch.device) -> ObjectLibrary:
+        return replace(self, **{f.name: getattr(self, f.name).to(device) for f in fields(self)
+                                if isinstance(getattr(self, f.name), torch.Tensor)})
+
+    @classmethod
+    def from_references(cls, refs: Sequence[Reference], objects: SceneObjects, model: mujoco.MjModel,
+                        cfg: ObjectsCfg, device: str | torch.device = "cpu") -> ObjectLibrary:
+        """``refs`` as prepared for the ``MotionLibrary`` (resampled, same order); ``model``
+        the simulation model holding ``objects`` (for the geometric windows)."""
+        moving = [i for i, o in enumerate(objects.objects) if not o.static]
+        static = [i for i, o in enumerate(objects.objects) if o.static]
+        supports = (["ground"] if cfg.support_ground else []) + [objects.objects[i].name for i in static]
+        geometry = _Geometry(model, objects, cfg)
+        per_clip = [_clip_arrays(ref, moving, static, geometry, cfg) for ref in refs]
+
+        def cat(key: str) -> torch.Tensor:
+            return torch.as_tensor(np.concatenate([c[key] for c in per_clip]), dtype=torch.float32, device=device)
+
+        def const(values, width: int) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(values, np.float64).reshape(len(static), width), dtype=torch.float32,
+                                   device=device)
+
+        return cls(
+            names=tuple(objects.objects[i].name for i in moving), support_names=tuple(supports),
+            hand_bodies=tuple(cfg.hand_bodies), window_source=tuple(c["source"] for c in per_clip),
+            pos_w=cat("pos"), quat_w=cat("quat"), lin_vel_w=cat("lin"), ang_vel_w=cat("ang"),
+            hand_target_o=cat("target"), hand_gate=cat("hand_gate"), support_gate=cat("support_gate"),
+            static_pos_w=const([objects.objects[i].pos_w for i in static], 3),
+            static_quat_w=const([objects.objects[i].quat_w for i in static], 4),
+        )
+
+
+def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model: mujoco.MjModel,
+                        cfg: ObjectsCfg) -> SceneObjects:
+    """Narrow box-shaped moving objects so that the reference's grasps do not start inside them.
+
+    A reference is retargeted against the object's *surface* and the robot's *visual* hand;
+    the simulation collides the hand's capsule (fatter than the hand) with the fitted box (an
+    enclosing box, wider than a scan's bulging sides). On our OMOMO large-box reference both
+    add up to 3.5 cm of penetration per hand (median inside the hand windows), so every reset
+    inside a grasp would eject the box. The grasped axis is the box axis whose faces are
+    nearest to the reference hand points in most frames where a hand is inside the box; its
+    half-extent shrinks (both faces, the centre stays) by the ``grasp_fit_quantile`` of those
+    penetration depths, at most by half.
+    Only that axis: a box lifted at its bottom edges (OMOMO's) keeps its height, so it still
+    rests on the floor and the table where the reference has it. The mass stays. Other shapes
+    are kept; ``objects`` itself is returned when nothing changes.
+    """
+    geometry = _Geometry(model, objects, cfg)
+    moving = [i for i, o in enumerate(objects.objects) if not o.static]
+    static = [i for i, o in enumerate(objects.objects) if o.static]
+    depth: dict[int, list[list[float]]] = {k: [[], [], []] for k in range(len(moving))}
+    for ref in refs:
+        hand_d, _ = geometry.distances(ref, moving, static, hands=True)
+        target = _hand_points_in_object(ref, moving, cfg)  # (T, H, M, 3)
+        for k, i in enumerate(moving):
+            shapes = objects.objects[i].shapes
+            if len(shapes) != 1 or not isinstance(shapes[0], BoxShape):
+                continue
+            box = shapes[0]
+            local = quat_apply_inverse(np.broadcast_to(box.quat_wxyz, target[:, :, k].shape[:-1] + (4,)),
+                                       target[:, :, k] - box.pos)
+            axis = np.argmax(np.abs(local) / box.half_extents, axis=-1)  # (T, H): the face the hand is at
+            inside = hand_d[:, :, k] < 0.0
+            for a in range(3):
+                depth[k][a].extend((-hand_d[:, :, k][inside & (axis == a)]).tolist())
+    out, changed = list(objects.objects), False
+    for k, i in enumerate(moving):
+        obj = objects.objects[i]
+        counts = [len(d) for d in depth[k]]
+        if max(counts) < 5:
+            continue
+        axis = int(np.argmax(counts))  # the grasped axis: the faces most hand frames are at
+        box = obj.shapes[0]
+        shrink = np.zeros(3)
+        shrink[axis] = min(max(float(np.quantile(depth[k][axis], cfg.grasp_fit_quantile)), 0.0),
+                           0.5 * box.half_extents[axis])
+        if shrink[axis] > 1e-3:
+            fitted = BoxShape(box.half_extents - shrink, box.pos, box.quat_wxyz)
+            out[i] = replace(obj, shapes=(fitted,), grasp_shrink_m=shrink)
+            changed = True
+    return replace(objects, objects=tuple(out)) if changed else objects
+
+
+def _hand_points_in_object(ref: Reference, moving: list[int], cfg: ObjectsCfg) -> np.ndarray:
+    """(T, H, M, 3) reference hand points p_eef in each moving object's frame."""
+    pos = np.stack([ref.objects[i].pos_w for i in moving], axis=1)
+    quat = np.stack([ref.objects[i].quat_w for i in moving], axis=1)
+    hands = ref.body_index(cfg.hand_bodies)  # raises naming the file if a hand body is missing
+    hand_pos = ref.body_pos_w[:, hands] + quat_apply(ref.body_quat_w[:, hands],
+                                                     np.broadcast_to(cfg.hand_point_offset_m, (len(hands), 3)))
+    rel = hand_pos[:, :, None] - pos[:, None]  # (T, H, M, 3)
+    return quat_apply_inverse(np.broadcast_to(quat[:, None], rel.shape[:-1] + (4,)), rel)
+
+
+def proximity_gate(distance_m: np.ndarray, threshold_m: float, fps: float, ramp_s: float,
+                   min_gap_s: float) -> np.ndarray:
+    """(T,) gate in [0, 1] of a (T,) distance series (see the module docstring)."""
+    inside = np.asarray(distance_m) < threshold_m
+    gap = int(round(min_gap_s * fps))
+    if gap > 0 and inside.any():
+        first, last = np.flatnonzero(inside)[[0, -1]]
+        run = 0
+        for t in range(first, last + 1):  # close interior gaps shorter than ``gap`` frames
+            if inside[t]:
+                if 0 < run < gap:
+                    inside[t - run:t] = True
+                run = 0
+            else:
+                run += 1
+    ramp = max(int(round(ramp_s * fps)), 1)
+    gate = np.zeros(inside.shape)
+    k = 0
+    for t, on in enumerate(inside):
+        k = k + 1 if on else 0
+        gate[t] = min(k / ramp, 1.0)
+    return gate
+
+
+class _Geometry:
+    """Surface distances between model geoms at reference poses (CPU MuJoCo)."""
+
+    def __init__(self, model: mujoco.MjModel, objects: SceneObjects, cfg: ObjectsCfg):
+        self.model, self.data = model, mujoco.MjData(model)
+        self.cfg = cfg
+
+        def geoms_of(body: str) -> list[int]:
+            b = model.body(body).id
+            return [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_contype[g] | model.geom_conaffinity[g]]
+
+        self.hand_geoms = []
+        for hand in cfg.hand_bodies:
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, hand) < 0:
+                raise KeyError(f"objects.hand_bodies: '{hand}' is not a body of the simulation model")
+            self.hand_geoms.append(geoms_of(hand))
+        self.object_geoms = {o.name: geoms_of(o.body) for o in objects.objects}
+        self.ground = [model.geom(GROUND_GEOM).id]
+        self.robot_nq = model.nq - 7 * len(objects.moving)
+
+    def distances(self, ref: Reference, moving: list[int], static: list[int],
+                  hands: bool) -> tuple[np.ndarray | None, np.ndarray]:
+        """((T, H, M) hand–object distances or None, (T, M, S) object–support distances), m."""
+        m, d = self.model, self.data
+        names = [ref.objects[i].name for i in moving]
+        supports = ([self.ground] if self.cfg.support_ground else []) + \
+            [self.object_geoms[ref.objects[i].name] for i in static]
+        T = ref.num_frames
+        hand_d = np.full((T, len(self.hand_geoms), len(moving)), _FAR_M) if hands else None
+        support_d = np.full((T, len(moving), len(supports)), _FAR_M)
+        qpos = ref.qpos()
+        fromto = np.zeros(6)
+        for t in range(T):
+            d.qpos[:self.robot_nq] = qpos[t]
+            for k, i in enumerate(moving):
+                d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t],
+                                                                                  ref.objects[i].quat_w[t]]
+            mujoco.mj_kinematics(m, d)
+            for k, name in enumerate(names):
+                obj = self.object_geoms[name]
+                if hands:
+                    for h, hand in enumerate(self.hand_geoms):
+                        hand_d[t, h, k] = min(mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
+                                              for a in hand for b in obj)
+                for s, support in enumerate(supports):
+                    support_d[t, k, s] = min(mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
+                                             for a in obj for b in support)
+        return hand_d, support_d
+
+
+def _annotated_hand_distances(ref: Reference, moving: list[int], hands: Sequence[str]) -> np.ndarray | None:
+    """(T, H, M) from the reference's contact annotations, or None when any is missing."""
+    c = ref.contacts
+    if c is None:
+        return None
+    names = [ref.objects[i].name for i in moving]
+    if any(h not in c.body_names for h in hands) or any(n not in c.channel_names for n in names):
+        return None
+    rows = [c.body_names.index(h) for h in hands]
+    cols = [c.channel_names.index(n) for n in names]
+    return c.distance[:, rows][:, :, cols]
+
+
+def _clip_arrays(ref: Reference, moving: list[int], static: list[int], geometry: _Geometry,
+                 cfg: ObjectsCfg) -> dict:
+    tracks = [ref.objects[i] for i in moving]
+    pos = np.stack([o.pos_w for o in tracks], axis=1)
+    quat = np.stack([o.quat_w for o in tracks], axis=1)
+    target = _hand_points_in_object(ref, moving, cfg)
+    annotated = _annotated_hand_distances(ref, moving, cfg.hand_bodies)
+    hand_d, support_d = geometry.distances(ref, moving, static, hands=annotated is None)
+    if annotated is not None:
+        hand_d = annotated
+
+    def gate(dist: np.ndarray, threshold: float) -> np.ndarray:
+        flat = dist.reshape(dist.shape[0], -1)
+        if flat.shape[1] == 0:
+            return np.zeros(dist.shape)
+        out = np.stack([proximity_gate(flat[:, j], threshold, ref.fps, cfg.window_ramp_s, cfg.window_min_gap_s)
+                        for j in range(flat.shape[1])], axis=1)
+        return out.reshape(dist.shape)
+
+    return {
+        "pos": pos, "quat": quat,
+        "lin": np.stack([o.lin_vel_w for o in tracks], axis=1), "ang": np.stack([o.ang_vel_w for o in tracks], axis=1),
+        "target": target, "hand_gate": gate(hand_d, cfg.proximity_threshold_m),
+        "support_gate": gate(support_d, cfg.support_threshold_m),
+        "source": "annotations" if annotated is not None else "geometry",
+    }

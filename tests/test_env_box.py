@@ -1,0 +1,363 @@
+"""OTR-G1-BoxTrack-v0: objects in the simulation, contact windows, object terms, bad input.
+
+The reference is generated (``conftest._box_clip``): the G1 stands still while a 20 cm box
+moves through known windows (floor [0, 40), beside the left hand [60, 100), on a static table
+[110, 151)); one file carries contact annotations, the other none.
+"""
+
+from __future__ import annotations
+
+import warnings
+from types import SimpleNamespace
+
+import gymnasium
+import numpy as np
+import pytest
+import torch
+import trimesh
+from conftest import BOX_HALF_M
+from gymnasium.utils.env_checker import check_env
+
+import otr_gym  # noqa: F401  (registers the environments)
+from envs.box import make_box_task
+from envs.collision import collision_shapes
+from envs.config import BOX_CONFIG, BoxEnvCfg, load_box_config
+from envs.mdp import rewards as reward_terms
+from envs.mdp.motion import prepared_references
+from envs.mdp.objects import _Geometry, proximity_gate
+from envs.mdp.state import ObjectState
+from envs.objects import object_qpos
+from otr_gym.reference import InvalidReferenceError, Reference
+from otr_gym.rotations import quat_apply_inverse
+
+
+def _cfg(**command) -> BoxEnvCfg:
+    cfg = BoxEnvCfg()
+    for key, value in command.items():
+        setattr(cfg.command, key, value)
+    return cfg
+
+
+@pytest.fixture(scope="module")
+def eval_task(box_reference):
+    return make_box_task(box_reference, 2, "mujoco", "cpu", evaluation=True)
+
+
+# ------------------------------------------------------------------ configuration and errors
+def test_box_yaml_lists_exactly_the_dataclass_defaults():
+    assert load_box_config(BOX_CONFIG) == BoxEnvCfg()
+
+
+def test_a_reference_without_objects_is_refused_naming_the_file(walking_reference):
+    with pytest.raises(InvalidReferenceError, match=rf"{walking_reference}: OTR-G1-BoxTrack-v0 needs a reference "
+                                                    r"with objects"):
+        make_box_task(walking_reference, 1, "mujoco", "cpu")
+
+
+def test_an_object_without_mesh_is_refused_naming_file_and_object(box_reference_geometry, tmp_path):
+    ref = Reference.load(box_reference_geometry)
+    ref.objects[0].mesh_vertices = ref.objects[0].mesh_faces = None
+    path = ref.save(tmp_path / "meshless.npz")
+    with pytest.raises(InvalidReferenceError, match=rf"{path}: object 'box' has no mesh.*overrides\.box\.mesh"):
+        make_box_task(path, 1, "mujoco", "cpu")
+    # ... and a mesh given in the config makes it usable
+    mesh = tmp_path / "box.obj"
+    trimesh.creation.box(extents=(2 * BOX_HALF_M,) * 3).export(mesh)
+    cfg = load_box_config(overrides={"objects": {"overrides": {"box": {"mesh": str(mesh)}}}})
+    task = make_box_task(path, 1, "mujoco", "cpu", cfg=cfg)
+    assert task.scene.objects[0].method == "box"
+
+
+def test_a_mesh_that_cannot_be_decomposed_is_refused_naming_file_and_object(box_reference_geometry, tmp_path):
+    ref = Reference.load(box_reference_geometry)
+    flat = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    flat.vertices[:, 2] = 0.0  # every vertex in one plane: no volume to decompose
+    ref.objects[0].mesh_vertices, ref.objects[0].mesh_faces = np.asarray(flat.vertices), np.asarray(flat.faces)
+    path = ref.save(tmp_path / "flat.npz")
+    with pytest.raises(InvalidReferenceError, match=rf"{path}: object 'box'.*cannot be decomposed"):
+        make_box_task(path, 1, "mujoco", "cpu")
+
+
+def test_box_like_meshes_become_boxes_and_others_convex_hulls(tmp_path):
+    box = trimesh.creation.box(extents=(0.35, 0.4, 0.3))
+    shapes, method = collision_shapes(box.vertices, box.faces, "box")
+    assert method == "box" and np.allclose(np.sort(2 * shapes[0].half_extents), [0.3, 0.35, 0.4], atol=1e-6)
+    open_box = trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] > -0.5])  # a scan without bottom
+    assert collision_shapes(open_box.vertices, open_box.faces, "open box")[1] == "box"
+    legs = trimesh.util.concatenate([trimesh.creation.box(extents=(0.04, 0.04, 0.7),
+                                                          transform=trimesh.transformations.translation_matrix((x, 0, 0)))
+                                     for x in (0.0, 0.5)])
+    shapes, method = collision_shapes(legs.vertices, legs.faces, "legs")
+    assert method == "boxes" and len(shapes) == 2
+    torus = trimesh.creation.torus(0.2, 0.05, major_sections=24, minor_sections=12)
+    shapes, method = collision_shapes(torus.vertices, torus.faces, "torus", cache_dir=tmp_path)
+    assert method == "convex decomposition" and len(shapes) >= 4
+    hull_points = np.concatenate([s.vertices for s in shapes])
+    assert np.abs(np.linalg.norm(hull_points[:, :2], axis=1) - 0.2).max() < 0.06  # hulls hug the ring
+
+
+# ------------------------------------------------------------------ windows (gates)
+def test_proximity_gate_ramps_up_closes_short_gaps_and_cuts_off_at_the_window_end():
+    d = np.full(40, 0.3)
+    d[10:30] = 0.01
+    d[20:22] = 0.3  # a 2-frame gap: closed (min gap 0.1 s = 5 frames)
+    gate = proximity_gate(d, 0.05, fps=50.0, ramp_s=0.1, min_gap_s=0.1)
+    assert np.all(gate[:10] == 0) and np.all(gate[30:] == 0)
+    assert np.allclose(gate[10:15], [0.2, 0.4, 0.6, 0.8, 1.0]) and np.all(gate[15:30] == 1.0)
+
+
+@pytest.mark.parametrize("source", ["annotations", "geometry"])
+def test_every_gate_is_zero_outside_its_window_and_positive_inside(source, box_reference, box_reference_geometry):
+    path = box_reference if source == "annotations" else box_reference_geometry
+    task = make_box_task(path, 1, "mujoco", "cpu", evaluation=True)
+    lib = task.objects
+    assert lib.window_source == (source,) and lib.support_names == ("ground", "table")
+    hands = lib.hand_gate[:, :, 0].numpy()  # (T, 2)
+    supports = lib.support_gate[:, 0].numpy()  # (T, 2)
+    frames = np.arange(len(hands))
+
+    def check(gate, inside, outside):
+        assert np.all(gate[np.isin(frames, inside)] > 0)
+        assert np.all(gate[np.isin(frames, outside)] == 0)
+
+    # annotations: left [60, 100), right [70, 90); geometry: the box glides in beside the left hand
+    # only (a frame of approach may fall within 5 cm), never near the right one
+    check(hands[:, 0], range(60, 100), [*range(58), *range(101, 151)])
+    if source == "annotations":
+        check(hands[:, 1], range(70, 90), [*range(70), *range(90, 151)])
+    else:
+        assert np.all(hands[:, 1] == 0)
+    check(supports[:, 0], range(40), range(42, 151))  # ground
+    check(supports[:, 1], range(110, 151), range(108))  # table
+
+
+def test_gated_rewards_pay_one_outside_their_windows_whatever_the_contact():
+    s = _object_state(hand_gate=torch.zeros(3, 2, 1), hand_force_n=torch.tensor([0.0, 30.0, 300.0])[:, None, None]
+                      .expand(3, 2, 1), hand_offset_m=torch.tensor([0.0, 0.2, 1.0]))
+    value = reward_terms.hand_contact_force_setpoint(s, 0.3, 0.05, 10.0, 40.0, 5.0)
+    assert torch.allclose(value, torch.ones(3))
+
+
+def test_force_reward_rises_with_hand_box_force_inside_a_window_then_holds_at_the_set_point():
+    forces = torch.tensor([0.0, 2.0, 5.0, 9.0, 10.0, 20.0, 80.0])
+    s = _object_state(hand_gate=torch.ones(len(forces), 2, 1), hand_force_n=forces[:, None, None].expand(-1, 2, 1),
+                      hand_offset_m=torch.zeros(len(forces)))
+    value = reward_terms.hand_contact_force_setpoint(s, 0.3, 0.05, 10.0, 40.0, 5.0)
+    assert torch.all(value[1:5] > value[:4])  # rises up to F_th = 10 N
+    assert torch.allclose(value[4:], torch.full((3,), 5.0))  # the set-point: gain · 1 at and beyond F_th
+    assert value[0] == pytest.approx(5.0 * np.exp(-10.0 / 40.0))
+    # and falls as the hand leaves its target on the object (beyond the 5 cm tolerance)
+    far = _object_state(hand_gate=torch.ones(3, 2, 1), hand_force_n=torch.full((3, 2, 1), 20.0),
+                        hand_offset_m=torch.tensor([0.04, 0.2, 0.5]))
+    v = reward_terms.hand_contact_force_setpoint(far, 0.3, 0.05, 10.0, 40.0, 5.0)
+    assert v[0] == pytest.approx(5.0) and v[0] > v[1] > v[2]
+
+
+def _object_state(hand_gate, hand_force_n, hand_offset_m) -> SimpleNamespace:
+    """A state with one box at the origin, both hands ``hand_offset_m`` (n,) from their targets."""
+    n = hand_gate.shape[0]
+    zeros3 = torch.zeros(n, 1, 3)
+    ident = torch.tensor([1.0, 0.0, 0.0, 0.0]).expand(n, 1, 4)
+    target = torch.zeros(n, 2, 1, 3)
+    hand = torch.zeros(n, 2, 3)
+    hand[:, :, 0] = hand_offset_m[:, None]
+    return SimpleNamespace(objects=ObjectState(names=("box",), support_names=(), pos_w=zeros3, quat_w=ident, lin_vel_w=zeros3,
+                       ang_vel_w=zeros3, ref_pos_w=zeros3, ref_quat_w=ident, ref_lin_vel_w=zeros3,
+                       ref_ang_vel_w=zeros3, hand_pos_w=hand, hand_target_w=target, hand_gate=hand_gate,
+                       hand_force_n=hand_force_n, support_gate=torch.zeros(n, 1, 0),
+                       support_force_n=torch.zeros(n, 1, 0), static_pos_w=torch.zeros(0, 3),
+                       static_quat_w=torch.zeros(0, 4)))
+
+
+# ------------------------------------------------------------------ simulation
+def test_hand_box_force_is_measured_when_the_box_is_pressed_on_the_hand(box_reference):
+    task = make_box_task(box_reference, 1, "mujoco", "cpu", evaluation=True)
+    task.reset(seed=0)
+    row = task.motion.clip_start[0] + 80  # box 1 cm left of the left hand
+    qpos, qvel = task.backend.qpos.clone(), task.backend.qvel.clone()
+    qpos[0, 36:39] = task.objects.pos_w[row, 0]
+    qpos[0, 37] -= 0.02  # 1 cm into the hand capsule
+    qvel[0, 35:] = 0.0
+    task.backend.reset(torch.ones(1, dtype=torch.bool), qpos, qvel)
+    task.step(torch.zeros(1, 29))
+    pressed = task.tracking_state.objects.hand_force_n[0, :, 0]
+    assert pressed[0] > 1.0 and pressed[1] == 0.0  # left hand pushed, right hand free
+    qpos[0, 37] += 0.2
+    task.backend.reset(torch.ones(1, dtype=torch.bool), qpos, qvel)
+    task.step(torch.zeros(1, 29))
+    assert torch.all(task.tracking_state.objects.hand_force_n == 0.0)
+
+
+def test_objects_start_on_the_reference_pose_with_its_velocity(box_reference):
+    task = make_box_task(box_reference, 4, "mujoco", "cpu", cfg=_cfg(reset_noise_enabled=False, start="uniform"),
+                         seed=3)
+    task.reset(seed=5)
+    rows = task.command.start_rows
+    assert len(set(rows.tolist())) > 1
+    lib = task.objects
+    assert torch.allclose(task.backend.qpos[:, 36:43], object_qpos(lib.pos_w[rows], lib.quat_w[rows]), atol=1e-6)
+    assert torch.allclose(task.backend.qvel[:, 35:38], lib.lin_vel_w[rows, 0], atol=1e-6)
+    table = task.backend.body_ids(["object/table"])[0]
+    assert torch.allclose(task.backend.body_pos_w[:, table], torch.tensor([1.3, 0.0, 0.0]), atol=1e-6)
+
+
+def test_a_held_box_follows_the_robots_reset_noise(box_reference):
+    task = make_box_task(box_reference, 64, "mujoco", "cpu", cfg=_cfg(start="uniform"), seed=0)
+    task.reset(seed=1)
+    rows = task.command.start_rows
+    held = (task.objects.hand_gate[rows] > 0).any(dim=1)[:, 0]
+    assert held.any() and (~held).any()
+    # held: the box keeps its pose in the pelvis frame exactly (it moves with the root noise);
+    # loose: it gets its own ±5 cm in x, y and the robot ±5 cm / ±0.2 rad yaw about the root
+    ref_local = quat_apply_inverse(task.motion.root_quat_w[rows], task.objects.pos_w[rows, 0] -
+                                   task.motion.root_pos_w[rows])
+    sim_local = quat_apply_inverse(task.backend.qpos[:, 3:7], task.backend.qpos[:, 36:39] - task.backend.qpos[:, :3])
+    error = (sim_local - ref_local).norm(dim=-1)
+    assert error[held].max() < 1e-5
+    assert error[~held].min() > 1e-3 and error[~held].max() > 0.03
+
+
+def test_the_object_termination_fires_beyond_25_cm(eval_task):
+    task = eval_task
+    task.reset(seed=0)
+    qpos, qvel = task.backend.qpos.clone(), task.backend.qvel.clone()
+    qpos[:, 36] += torch.tensor([0.20, 0.30])  # box 20 cm / 30 cm off (at rest on the floor)
+    task.backend.reset(torch.ones(2, dtype=torch.bool), qpos, qvel)
+    _, _, terminated, _, extras = task.step(torch.zeros(2, 29))
+    assert extras["terminations"]["object_pos"].tolist() == [False, True]
+    assert terminated[1] and not extras["success"].any()
+
+
+def test_success_is_the_clip_s_last_frame_reached(eval_task):
+    task = eval_task
+    task.reset(seed=0)
+    lib, motion = task.objects, task.motion
+    successes = []
+    for _ in range(int(motion.clip_length[0])):
+        # keep robot and box on the reference, as a perfect policy would
+        rows = task.command.rows
+        qpos = torch.cat([motion.qpos(rows), object_qpos(lib.pos_w[rows], lib.quat_w[rows])], dim=-1)
+        task.backend.reset(torch.ones(2, dtype=torch.bool), qpos, torch.zeros_like(task.backend.qvel))
+        _, _, terminated, truncated, extras = task.step(torch.zeros(2, 29))
+        assert not terminated.any()
+        successes.append(bool(extras["success"][0]))
+        if truncated.all():
+            break
+    assert successes[-1] and not any(successes[:-1]) and len(successes) == int(motion.clip_length[0]) - 1
+
+
+def test_observations_name_the_object_terms_and_their_sizes(eval_task):
+    layout = dict(eval_task.obs_layout["policy"])
+    assert layout["object_pos_b"] == 3 and layout["object_ori_b"] == 6 and layout["object_command"] == 15
+    assert layout["contact_schedule"] == 2 + 2 and layout["static_object_pos_b"] == 3
+    assert eval_task.obs_dims["policy"] == 154 + 3 + 6 + 15 + 4 + 3 + 6
+    meta = eval_task.policy_metadata()
+    assert "object_command" in meta["observation_names"]["policy"]
+    assert meta["objects"]["moving"] == ["box"] and meta["objects"]["static"] == ["table"]
+    # the reference box as seen from the reference torso equals the simulated one at a reset on the reference
+    eval_task.reset(seed=0)
+    obs = eval_task.observations(eval_task.state)["critic"]
+    start = {n: sum(d for _, d in eval_task.obs_layout["critic"][:i]) for i, (n, _) in
+             enumerate(eval_task.obs_layout["critic"])}
+    sim = obs[:, start["object_pos_b"]:start["object_pos_b"] + 3]
+    ref = obs[:, start["object_command"]:start["object_command"] + 3]
+    # reset puts the robot on the start frame; the command shows the next (target) frame
+    assert torch.allclose(sim, ref, atol=0.02)
+
+
+def test_gymnasium_env_checker_passes_on_the_single_env(box_reference):
+    env = gymnasium.make("OTR-G1-BoxTrack-v0", reference=box_reference)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    messages = [str(w.message) for w in caught if "gymnasium" in str(w.filename) or "Box" in str(w.message)]
+    assert all("normalized space" in m for m in messages), messages
+    env.close()
+
+
+def test_rendered_frame_shows_the_box_and_its_reference_ghost(box_reference):
+    env = gymnasium.make("OTR-G1-BoxTrack-v0", reference=box_reference, render_mode="rgb_array", evaluation=True,
+                         width=160, height=120)
+    env.reset(seed=0)
+    try:
+        frame = env.render()
+    except RuntimeError as exc:
+        pytest.skip(f"no offscreen OpenGL on this machine: {exc}")
+    assert frame.shape == (120, 160, 3)
+    renderer, task = env.unwrapped._renderer, env.unwrapped.task
+    qpos = task.backend.qpos[0].double().numpy()
+    no_box = qpos.copy()
+    no_box[36:39] = [50.0, 50.0, -5.0]  # the box far away, below the floor
+    with_box = renderer.render(qpos).astype(int)
+    assert (np.abs(with_box - renderer.render(no_box).astype(int)).sum(-1) > 30).mean() > 0.002
+    ghost = qpos.copy()
+    ghost[36:39] += [0.0, -0.5, 0.3]  # the reference box beside the simulated one (robot ghost unmoved)
+    on_top = renderer.render(qpos, ghost_qpos=qpos).astype(int)
+    beside = renderer.render(qpos, ghost_qpos=ghost).astype(int)
+    changed = np.abs(beside - on_top).sum(-1) > 30
+    assert changed.mean() > 0.002
+    env.close()
+
+
+# ------------------------------------------------------------------ MuJoCo-Warp (warp "cpu" device)
+def test_both_backends_put_the_objects_on_the_reference_and_agree_on_their_state(box_reference):
+    """Same start (no reset noise), same actions: object poses, velocities and contact forces
+    of CPU MuJoCo and MuJoCo-Warp agree; the first MuJoCo-Warp use compiles kernels (~1 min)."""
+    wp = pytest.importorskip("warp")
+    wp.config.quiet = True
+    cfg = _cfg(reset_noise_enabled=False, start="uniform")
+    cfg.randomization.enabled = False
+    cpu = make_box_task(box_reference, 3, "mujoco", "cpu", cfg=cfg, seed=4)
+    gpu_code = make_box_task(box_reference, 3, "warp", "cpu", cfg=cfg, seed=4)
+    cpu.reset(seed=7)
+    gpu_code.reset(seed=7)
+    rows = cpu.command.start_rows
+    assert torch.equal(rows, gpu_code.command.start_rows)
+    expected = object_qpos(cpu.objects.pos_w[rows], cpu.objects.quat_w[rows])
+    for task in (cpu, gpu_code):
+        assert torch.allclose(task.backend.qpos[:, 36:43], expected, atol=1e-6)
+        ids = task.backend.body_ids(["object/box"])
+        assert torch.allclose(task.backend.body_pos_w[:, ids[0]], cpu.objects.pos_w[rows, 0], atol=1e-5)
+    gen = torch.Generator().manual_seed(0)
+    worst = {"pos": 0.0, "quat": 0.0, "lin_vel": 0.0, "support_force": 0.0}
+    everyone = torch.ones(3, dtype=torch.bool)
+    for _ in range(15):
+        qpos, qvel = cpu.backend.qpos.clone(), cpu.backend.qvel.clone()
+        gpu_code.backend.reset(everyone, qpos, qvel)
+        cpu.backend.reset(everyone, qpos, qvel)
+        actions = 0.3 * torch.randn(3, 29, generator=gen)
+        _, _, term_a, _, _ = cpu.step(actions)
+        _, _, term_b, _, _ = gpu_code.step(actions)
+        a, b = cpu.tracking_state.objects, gpu_code.tracking_state.objects
+        assert torch.equal(term_a, term_b)
+        worst["pos"] = max(worst["pos"], (a.pos_w - b.pos_w).abs().max().item())
+        worst["quat"] = max(worst["quat"], (a.quat_w - b.quat_w).abs().max().item())
+        worst["lin_vel"] = max(worst["lin_vel"], (a.lin_vel_w - b.lin_vel_w).abs().max().item())
+        worst["support_force"] = max(worst["support_force"], (a.support_force_n - b.support_force_n).abs().max().item())
+    assert worst["pos"] < 1e-3 and worst["quat"] < 1e-3 and worst["lin_vel"] < 0.05, worst
+    assert worst["support_force"] < 10.0, worst
+
+
+def test_a_box_the_reference_hand_starts_inside_is_narrowed_on_the_grasped_axis_only(box_reference_geometry, tmp_path):
+    ref = Reference.load(box_reference_geometry)
+    wide = trimesh.creation.box(extents=(2 * BOX_HALF_M, 2 * BOX_HALF_M + 0.06, 2 * BOX_HALF_M))
+    ref.objects[0].mesh_vertices, ref.objects[0].mesh_faces = np.asarray(wide.vertices), np.asarray(wide.faces)
+    path = ref.save(tmp_path / "wide.npz")  # beside the left hand, the box now reaches into its capsule
+    cfg = load_box_config(overrides={"objects": {"grasp_fit": False}})
+    before = make_box_task(path, 1, "mujoco", "cpu", cfg=cfg, evaluation=True)
+    task = make_box_task(path, 1, "mujoco", "cpu", evaluation=True)
+    box = task.scene.moving[0]
+    assert before.scene.moving[0].grasp_shrink_m is None
+    assert np.allclose(np.sort(before.scene.moving[0].shapes[0].half_extents), [0.1, 0.1, 0.13])
+    lateral = int(np.argmax(before.scene.moving[0].shapes[0].half_extents))  # the 26 cm (y) axis
+    assert np.flatnonzero(box.grasp_shrink_m).tolist() == [lateral] and box.grasp_shrink_m[lateral] > 0.005
+    assert np.allclose(box.shapes[0].half_extents + box.grasp_shrink_m, before.scene.moving[0].shapes[0].half_extents)
+    assert task.policy_metadata()["objects"]["grasp_shrink_m"]["box"] == pytest.approx(box.grasp_shrink_m.tolist())
+
+    def left_hand_gap(t) -> np.ndarray:
+        prepared = prepared_references(path, t.cfg.command.tracked_bodies)[0]
+        hands, _ = _Geometry(t.backend.model, t.scene, t.cfg.objects).distances(prepared, [0], [1], hands=True)
+        return hands[62:98, 0, 0]  # the frames the box rests beside the left hand
+
+    assert left_hand_gap(before).max() < -0.005  # the reference hand starts inside the box
+    assert np.quantile(left_hand_gap(task), 0.25) >= -1e-3  # after the fit it starts (at most) touching it
