@@ -81,7 +81,8 @@ class CycleLog:
             a["state_gyro_b"][i], a["state_accel_b"][i] = s.gyro_b, s.accel_b
             a["state_tick_ms"][i], a["state_mode_machine"][i] = s.tick_ms, s.mode_machine
             a["state_remote_keys"][i] = s.remote_keys
-        a["stage"][i], a["frame"][i], a["tilt_rad"][i], a["mpjpe_m"][i] = out.stage, out.frame, out.tilt_rad, out.mpjpe_m
+        a["stage"][i], a["frame"][i] = out.stage, out.frame
+        a["tilt_rad"][i], a["mpjpe_m"][i] = out.tilt_rad, out.mpjpe_m
         if out.observation is not None:
             a["observation"][i] = out.observation
         if out.action is not None:
