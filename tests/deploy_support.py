@@ -58,11 +58,13 @@ def nan_policy(meta: dict, path: Path) -> Path:
     """actions = obs[:, :29] · NaN: NaN from the first call."""
     D = int(meta["observation_dim"])
     graph = helper.make_graph(
-        [helper.make_node("Slice", ["obs", "s", "e", "a"], ["head"]), helper.make_node("Mul", ["head", "nan"], ["actions"])],
+        [helper.make_node("Slice", ["obs", "s", "e", "a"], ["head"]),
+         helper.make_node("Mul", ["head", "nan"], ["actions"])],
         "nan_policy", [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["batch", D])],
         [helper.make_tensor_value_info("actions", TensorProto.FLOAT, ["batch", 29])],
         [helper.make_tensor("s", TensorProto.INT64, [1], [0]), helper.make_tensor("e", TensorProto.INT64, [1], [29]),
-         helper.make_tensor("a", TensorProto.INT64, [1], [1]), helper.make_tensor("nan", TensorProto.FLOAT, [], [np.nan])])
+         helper.make_tensor("a", TensorProto.INT64, [1], [1]),
+         helper.make_tensor("nan", TensorProto.FLOAT, [], [np.nan])])
     return save_with_metadata(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), meta, path)
 
 

@@ -120,7 +120,8 @@ def test_the_bridge_drops_lowcmds_with_a_wrong_crc_and_counts_them(tmp_path):
     from agents.deploy.dds import G1Domain, take_latest
 
     domain, stats_path = domain_id(3), tmp_path / "sim.json"
-    sim = otr("sim-robot", "--interface", "lo", "--domain-id", str(domain), "--duration", "5", "--stats", str(stats_path))
+    sim = otr("sim-robot", "--interface", "lo", "--domain-id", str(domain), "--duration", "5",
+              "--stats", str(stats_path))
     dds = G1Domain(domain, "lo")
     reader, writer = dds.latest_reader(dds.lowstate_topic), dds.writer(dds.lowcmd_topic)
     deadline = time.monotonic() + 20

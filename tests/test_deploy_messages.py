@@ -35,7 +35,8 @@ def golden_low_cmd() -> m.LowCmd_:
 def golden_low_state() -> m.LowState_:
     msg = m.LowState_(version=[1, 2], mode_pr=0, mode_machine=5, tick=123456)
     msg.imu_state = m.IMUState_(quaternion=[f32(0.9), f32(0.1), f32(-0.2), f32(0.3)],
-                                gyroscope=[f32(0.01), f32(-0.02), f32(0.03)], accelerometer=[f32(0.1), f32(0.2), f32(9.8)],
+                                gyroscope=[f32(0.01), f32(-0.02), f32(0.03)],
+                                accelerometer=[f32(0.1), f32(0.2), f32(9.8)],
                                 rpy=[f32(0.1), f32(-0.1), f32(0.2)], temperature=40)
     for i in range(35):
         msg.motor_state[i] = m.MotorState_(mode=1, q=f32(0.02 * i), dq=f32(0.1 - 0.01 * i), ddq=0.0,
@@ -149,7 +150,8 @@ def test_robot_state_reads_joints_imu_and_remote_buttons():
     np.testing.assert_allclose(s.quat_wxyz, [0.9, 0.1, -0.2, 0.3], atol=1e-7)
     assert s.tick_ms == 123456 and s.mode_machine == 5
     assert s.remote_keys == (1 << 2) | (1 << 8)
-    assert msg.wireless_remote[2] == 0b100 and msg.wireless_remote[3] == 0b1  # SDK: start = byte 2 bit 2, A = byte 3 bit 0
+    # SDK's gamepad union: start = byte 2 bit 2, A = byte 3 bit 0
+    assert msg.wireless_remote[2] == 0b100 and msg.wireless_remote[3] == 0b1
     msg.motor_state[4].dq = float("nan")
     assert not m.robot_state(msg).is_finite()
 

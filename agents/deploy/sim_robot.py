@@ -108,7 +108,6 @@ class SimRobot:
             qpos[2] += cfg.gantry_lift_m
         self.data.qpos[: 7 + robot.NUM_JOINTS] = qpos
         mujoco.mj_forward(self.model, self.data)
-        self._gyro = self.model.sensor("imu_ang_vel").adr[0]
         self._acc = self.model.sensor("imu_lin_acc").adr[0]
         self._pelvis = self.model.body("pelvis").id
         self._torso = self.model.body(robot.ANCHOR_BODY).id
@@ -159,7 +158,9 @@ class SimRobot:
         quat = d.qpos[3:7]
         imu = msg.imu_state
         imu.quaternion = quat.tolist()
-        imu.gyroscope = d.sensordata[self._gyro : self._gyro + 3].tolist()
+        # the free joint's angular velocity is in the pelvis frame (the IMU site's orientation);
+        # the gyro sensor would lag one step (sensors are evaluated before integration)
+        imu.gyroscope = d.qvel[3:6].tolist()
         imu.accelerometer = d.sensordata[self._acc : self._acc + 3].tolist()
         imu.rpy = quat_to_rpy(quat).tolist()
         msg.tick = int(round(d.time * 1000.0)) & 0xFFFFFFFF
