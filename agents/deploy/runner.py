@@ -59,6 +59,16 @@ class DeadlineClock:
         return deadline - self.t0, now - self.t0
 
 
+def set_realtime_priority(priority: int) -> None:
+    """SCHED_FIFO at ``priority`` (1..99) for the calling thread: the loop then wakes on time
+    even when other processes load the CPU. Needs root or CAP_SYS_NICE (``ulimit -r``)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (PermissionError, OSError) as exc:
+        raise PermissionError(f"real-time priority {priority} refused ({exc}); run as root, grant CAP_SYS_NICE "
+                              "or raise `ulimit -r`, or leave --rt-priority out") from exc
+
+
 class Keyboard:
     """Non-blocking single keys from a terminal (nothing when stdin is not a TTY)."""
 
@@ -226,6 +236,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="joint targets clamped to this fraction of each joint's range")
     p.add_argument("--damp-s", type=float, default=2.0, help="keep sending damping this long, then exit (s)")
     p.add_argument("--spin-us", type=float, default=500.0, help="spin (instead of sleep) this long before a deadline")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="run the loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling)")
     p.add_argument("--wait-timeout", type=float, default=30.0, help="give up when no LowState arrives in this time (s)")
     p.add_argument("--replay", type=Path, default=None,
                    help="re-run this log offline through the same controller and compare the actions")
@@ -270,7 +282,10 @@ def main(args: argparse.Namespace) -> int:
         controller = build_controller(args.policy, reference, cfg)
         runner = Runner(controller, args.policy, reference, args.domain_id, args.interface, args.damp_s, args.spin_us,
                         args.wait_timeout)
-    except (FileNotFoundError, ValueError, PolicySpecError, TransportError) as exc:
+        if args.rt_priority:
+            set_realtime_priority(args.rt_priority)  # after the DDS threads exist: only this loop is real-time
+            runner.log.meta["rt_priority"] = args.rt_priority
+    except (FileNotFoundError, ValueError, PolicySpecError, TransportError, PermissionError) as exc:
         print(f"otr deploy: {exc}", file=sys.stderr)
         return 2
     log_path = args.log or Path("deploy_logs") / f"{args.policy.stem}_{time.strftime('%Y%m%d-%H%M%S')}.npz"

@@ -308,6 +308,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mute-after", type=float, default=None,
                    help="stop publishing LowState after this many seconds, physics going on (tests the "
                         "runner's stale-state damping)")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="run the physics loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling)")
     p.add_argument("--stats", type=Path, default=None, help="write a JSON summary here at exit")
     p.add_argument("--trace", type=Path, default=None, help="write the 50 Hz ground truth (qpos, gains) .npz here")
 
@@ -323,7 +325,11 @@ def main(args: argparse.Namespace) -> int:
         sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
                                    yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference))
         bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after)
-    except (TransportError, FileNotFoundError, ValueError) as exc:
+        if args.rt_priority:
+            from agents.deploy.runner import set_realtime_priority
+
+            set_realtime_priority(args.rt_priority)
+    except (TransportError, FileNotFoundError, ValueError, PermissionError) as exc:
         print(f"otr sim-robot: {exc}", file=sys.stderr)
         return 2
     signal.signal(signal.SIGTERM, bridge.stop)
