@@ -34,10 +34,11 @@ def meta(sway):
 
 
 def sim2sim(tmp, policy, reference, domain, sim_args=(), deploy_args=(), sim_s=20.0):
-    """Run the sim robot and the runner side by side; (runner rc, output, log, sim stats)."""
+    """Run the sim robot and the runner side by side; (runner rc, output, log, sim stats). The
+    sim robot exits 1 s after the runner's last LowCmd (``sim_s`` is only an upper bound)."""
     stats, log = tmp / f"sim_{domain}.json", tmp / f"run_{domain}.npz"
     sim = otr("sim-robot", "--interface", "lo", "--domain-id", str(domain), "--reference", str(reference),
-              "--duration", str(sim_s), "--stats", str(stats), *sim_args)
+              "--duration", str(sim_s), "--idle-exit", "1", "--stats", str(stats), *sim_args)
     run = otr("deploy", "--policy", str(policy), "--reference", str(reference), "--interface", "lo",
               "--domain-id", str(domain), "--auto-start", "--ramp", "0.5", "--damp-s", "0.5", "--log", str(log),
               *deploy_args)
@@ -51,7 +52,7 @@ def sim2sim(tmp, policy, reference, domain, sim_args=(), deploy_args=(), sim_s=2
 def tracked_run(tmp_path_factory, meta, sway):
     tmp = tmp_path_factory.mktemp("sim2sim")
     policy = feedback_policy(meta, tmp / "feedback.onnx")
-    return (policy,) + sim2sim(tmp, policy, sway, domain_id(0), deploy_args=("--duration", "10"), sim_s=16.0)
+    return (policy,) + sim2sim(tmp, policy, sway, domain_id(0), deploy_args=("--duration", "10"), sim_s=60.0)
 
 
 def test_runner_and_sim_robot_keep_the_g1_upright_for_10_s_of_tracking(tracked_run):
@@ -91,7 +92,7 @@ def test_inspect_summarises_timing_stages_and_tracking_error(tracked_run, capsys
 
 def test_bridge_stops_publishing_then_the_runner_damps_within_3_cycles(tmp_path, meta, sway):
     policy = feedback_policy(meta, tmp_path / "p.onnx")
-    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(1), sim_args=("--mute-after", "4"), sim_s=7.0)
+    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(1), sim_args=("--mute-after", "2"), sim_s=60.0)
     assert rc == 1, out  # a fault ended the run
     (damp,) = [t for t in log.transitions() if t[2] == "DAMP"]
     assert damp[1:] == ("TRACK", "DAMP", "stale_state")
@@ -105,7 +106,7 @@ def test_bridge_stops_publishing_then_the_runner_damps_within_3_cycles(tmp_path,
 
 def test_a_nan_action_sends_the_robot_to_damping(tmp_path, meta, sway):
     policy = nan_policy(meta, tmp_path / "nan.onnx")
-    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(2), sim_s=5.0)
+    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(2), sim_s=60.0)
     assert rc == 1, out
     a = log.arrays
     first_track = int(np.argmax(a["stage"] == Stage.TRACK)) if (a["stage"] == Stage.TRACK).any() else None

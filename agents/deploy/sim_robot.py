@@ -185,14 +185,15 @@ class BridgeStats:
 class Bridge:
     """``SimRobot`` on DDS: runs until ``duration_s`` (wall) or a signal."""
 
-    def __init__(self, sim: SimRobot, domain_id: int, interface: str | None, mute_after_s: float | None = None):
+    def __init__(self, sim: SimRobot, domain_id: int, interface: str | None, mute_after_s: float | None = None,
+                 idle_exit_s: float | None = None):
         from agents.deploy.dds import G1Domain
 
         self.sim = sim
         self.dds = G1Domain(domain_id, interface)
         self.writer = self.dds.writer(self.dds.lowstate_topic)
         self.reader = self.dds.latest_reader(self.dds.lowcmd_topic)
-        self.mute_after_s = mute_after_s
+        self.mute_after_s, self.idle_exit_s = mute_after_s, idle_exit_s
         self.stats = BridgeStats()
         self.command: JointCommand | None = None
         self._stop = False
@@ -236,11 +237,14 @@ class Bridge:
             wall_s = (now - t0) * 1e-9
             if duration_s is not None and wall_s >= duration_s:
                 break
+            first, last = self.stats.first_command_wall_s, self.stats.last_command_wall_s
+            if self.idle_exit_s is not None and last is not None and wall_s - last >= self.idle_exit_s:
+                break
             self._poll_command(wall_s)
             if self.command is not None or sim.cfg.gantry:
                 sim.step(self.command)
                 self.stats.steps += 1
-            if self.mute_after_s is None or wall_s < self.mute_after_s:
+            if self.mute_after_s is None or first is None or wall_s - first < self.mute_after_s:
                 self.writer.write(sim.low_state())
                 self.stats.published += 1
             if self.stats.first_damping_wall_s is None:  # a damped robot is meant to sink
@@ -305,9 +309,11 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--physics-hz", type=float, default=SimRobotCfg.physics_hz, help="physics and LowState rate (Hz)")
     p.add_argument("--yaw", type=float, default=0.0, help="initial heading (degrees)")
     p.add_argument("--duration", type=float, default=None, help="exit after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--idle-exit", type=float, default=None,
+                   help="exit when no LowCmd has come for this many seconds (after the first one)")
     p.add_argument("--mute-after", type=float, default=None,
-                   help="stop publishing LowState after this many seconds, physics going on (tests the "
-                        "runner's stale-state damping)")
+                   help="stop publishing LowState this many seconds after the first LowCmd, physics going on "
+                        "(tests the runner's stale-state damping)")
     p.add_argument("--rt-priority", type=int, default=0,
                    help="run the physics loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling)")
     p.add_argument("--stats", type=Path, default=None, help="write a JSON summary here at exit")
@@ -324,7 +330,7 @@ def main(args: argparse.Namespace) -> int:
     try:
         sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
                                    yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference))
-        bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after)
+        bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after, args.idle_exit)
         if args.rt_priority:
             from agents.deploy.runner import set_realtime_priority
 
