@@ -147,3 +147,21 @@ def test_the_bridge_drops_lowcmds_with_a_wrong_crc_and_counts_them(tmp_path):
     assert stats["dropped_bad_crc"] == 20, stats
     # only the five with a right CRC were accepted, and only they started the physics
     assert stats["accepted"] == 5 and stats["steps"] > 0
+
+
+def test_with_the_gantry_the_ramp_happens_hanging_and_the_robot_is_lowered_onto_its_feet(tmp_path, meta, sway):
+    policy = feedback_policy(meta, tmp_path / "p.onnx")
+    trace = tmp_path / "trace.npz"
+    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(4),
+                                  sim_args=("--gantry", "--gantry-release", "2.5", "--trace", str(trace)),
+                                  deploy_args=("--duration", "3", "--ramp", "2"), sim_s=60.0)
+    assert rc == 0, out
+    assert (log.arrays["stage"] == Stage.RAMP).sum() >= 95 and (log.arrays["stage"] == Stage.TRACK).sum() >= 145
+    t = np.load(trace)
+    since_command = t["wall_s"] - stats["first_command_wall_s"]
+    pelvis_z = t["qpos"][:, 2]
+    hanging = pelvis_z[(since_command > 0) & (since_command < 2.5)]  # the ramp, in the gantry
+    standing = pelvis_z[(since_command > 3.6) & (since_command < 5.0)]  # lowered, tracking
+    assert hanging.min() > 0.79  # default stance 0.76 m + the gantry's 5 cm, less its sag
+    assert 0.70 < standing.min() and standing.max() < 0.78
+    assert stats["upright"], stats

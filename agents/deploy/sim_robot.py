@@ -13,10 +13,14 @@ ctrl = torque within ±effort), so the PD law runs here in Python exactly as the
 it, at ``physics_hz`` (default 500 Hz, timestep 2 ms). Joint armature stays as trained.
 
 Before the first valid LowCmd the robot is frozen in its initial pose (a real G1 would hang in
-its gantry); with ``--gantry`` physics runs from the start and a virtual gantry holds the
-pelvis (a spring-damper that can only pull up, with a trolley spring in x/y) a few cm above
-the ground until ``--gantry-release`` seconds, then lowers it onto its feet over 1 s and lets
-go. The loop keeps real time on absolute deadlines; ``--stats`` writes what happened (commands
+its gantry). With ``--gantry`` physics runs from the start, the joints damped as in the G1's
+debug mode until a command comes, and a virtual gantry holds the torso link (where the real
+gantry hooks in): a rope that only pulls up, a trolley spring in x/y and a harness torque that
+keeps the torso upright, 5 cm above the ground, until ``--gantry-release`` seconds after the
+first valid LowCmd (the controller's ramp happens hanging; lower it after the ramp, a robot
+landing mid-ramp falls); then it lowers the robot onto its feet over 1 s and lets go.
+
+The loop keeps real time on absolute deadlines; ``--stats`` writes what happened (commands
 accepted and dropped, real-time factor, step timing, whether the robot stayed upright).
 """
 
@@ -38,6 +42,7 @@ from otr_gym.io import save_npz, write_json
 from otr_gym.rotations import quat_from_yaw, quat_mul, quat_to_matrix
 
 from agents.deploy import crc
+from agents.deploy.safety import STARTUP_KD
 from agents.deploy.messages import (
     MOTOR_MODE_ENABLE,
     JointCommand,
@@ -49,6 +54,9 @@ from agents.deploy.messages import (
 UPRIGHT_MIN_PELVIS_Z = 0.5  # m: below this (or tilted past UPRIGHT_MAX_TILT) the robot has fallen
 UPRIGHT_MAX_TILT = np.radians(60.0)
 MODE_MACHINE = 5  # the value Holosoma sends; real G1s report their own
+#: What the G1's joints do before any controller speaks (debug mode): damping only.
+DEBUG_MODE_DAMPING = JointCommand(q=np.zeros(robot.NUM_JOINTS), dq=np.zeros(robot.NUM_JOINTS),
+                                  kp=np.zeros(robot.NUM_JOINTS), kd=STARTUP_KD.copy(), tau=np.zeros(robot.NUM_JOINTS))
 
 
 @dataclass
@@ -56,9 +64,11 @@ class SimRobotCfg:
     physics_hz: float = 500.0
     gantry: bool = False
     gantry_lift_m: float = 0.05  # feet this far above the ground while hanging
-    gantry_release_s: float = 3.0
-    gantry_stiffness: float = 5000.0  # N/m
-    gantry_damping: float = 500.0  # N·s/m
+    gantry_release_s: float = 3.0  # after the first command
+    gantry_stiffness: float = 50000.0  # N/m: a rope, ~7 mm of sag under the G1
+    gantry_damping: float = 2000.0  # N·s/m (about critical for the G1's mass)
+    harness_stiffness: float = 500.0  # N·m/rad: the harness keeps the torso upright while hanging
+    harness_damping: float = 50.0  # N·m·s/rad
     yaw_rad: float = 0.0  # initial heading (the runner must align to it)
 
 
@@ -111,7 +121,8 @@ class SimRobot:
         self._acc = self.model.sensor("imu_lin_acc").adr[0]
         self._pelvis = self.model.body("pelvis").id
         self._torso = self.model.body(robot.ANCHOR_BODY).id
-        self._gantry_anchor = qpos[:3].copy()
+        self._gantry_anchor = self.data.xpos[self._torso].copy()
+        self.gantry_release_at_s: float | None = None  # sim time; set by release_gantry_in()
         self.tau = np.zeros(robot.NUM_JOINTS)
         self.msg = LowState_(mode_machine=MODE_MACHINE,
                              motor_state=[MotorState_(mode=MOTOR_MODE_ENABLE) for _ in range(35)])
@@ -126,20 +137,37 @@ class SimRobot:
         q, dq = d.qpos[7 : 7 + robot.NUM_JOINTS], d.qvel[6 : 6 + robot.NUM_JOINTS]
         self.tau = np.zeros(robot.NUM_JOINTS) if cmd is None else pd_torque(cmd, q, dq)
         d.ctrl[:] = self.tau
-        d.xfrc_applied[self._pelvis, :3] = self._gantry_force() if self.cfg.gantry else 0.0
+        d.xfrc_applied[self._torso] = self._gantry_wrench() if self.cfg.gantry else 0.0
         mujoco.mj_step(self.model, d)
 
-    def _gantry_force(self) -> np.ndarray:
-        """Trolley spring in x/y, a rope in z that only pulls; lowered after the release time."""
+    def release_gantry_in(self, seconds: float) -> None:
+        """Start lowering the gantry ``seconds`` of simulated time from now (once)."""
+        if self.gantry_release_at_s is None:
+            self.gantry_release_at_s = self.time_s + seconds
+
+    def _gantry_wrench(self) -> np.ndarray:
+        """(6,) force and torque on the torso (world): trolley spring in x/y, a rope in z that
+        only pulls, and a harness torque that keeps the torso upright; lowered after the
+        release time, the harness fading out as it goes down."""
         c = self.cfg
-        lowering = np.clip((self.time_s - c.gantry_release_s) / 1.0, 0.0, 1.0)
+        if self.gantry_release_at_s is None:
+            lowering = 0.0
+        else:
+            lowering = np.clip((self.time_s - self.gantry_release_at_s) / 1.0, 0.0, 1.0)
         if lowering >= 1.0:
-            return np.zeros(3)
+            return np.zeros(6)
         anchor = self._gantry_anchor - np.array([0.0, 0.0, (c.gantry_lift_m + 0.05) * lowering])
-        p, v = self.data.xpos[self._pelvis], self.data.cvel[self._pelvis, 3:]
+        d = self.data
+        velocity = np.zeros(6)  # [angular, linear] of the torso frame, world axes
+        mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_BODY, self._torso, velocity, 0)
+        p, w, v = d.xpos[self._torso], velocity[:3], velocity[3:]
         f = c.gantry_stiffness * (anchor - p) - c.gantry_damping * v
         f[2] = max(f[2], 0.0)
-        return f
+        z_body = d.xmat[self._torso].reshape(3, 3)[:, 2]
+        upright = np.cross(z_body, [0.0, 0.0, 1.0])  # axis·sin(tilt) that turns the torso upright
+        w_tilt = np.array([w[0], w[1], 0.0])  # yaw free: damping the light torso's yaw explicitly is unstable
+        torque = (1.0 - lowering) * (c.harness_stiffness * upright - c.harness_damping * w_tilt)
+        return np.concatenate([f, torque])
 
     def pelvis_height(self) -> float:
         return float(self.data.xpos[self._pelvis, 2])
@@ -216,6 +244,7 @@ class Bridge:
             self.stats.dropped_bad_crc += 1
             return
         self.command = joint_command(msg)
+        self.sim.release_gantry_in(self.sim.cfg.gantry_release_s)
         self.stats.accepted += 1
         self.stats.first_command_wall_s = self.stats.first_command_wall_s or wall_s
         self.stats.last_command_wall_s = wall_s
@@ -242,7 +271,7 @@ class Bridge:
                 break
             self._poll_command(wall_s)
             if self.command is not None or sim.cfg.gantry:
-                sim.step(self.command)
+                sim.step(self.command if self.command is not None else DEBUG_MODE_DAMPING)
                 self.stats.steps += 1
             if self.mute_after_s is None or first is None or wall_s - first < self.mute_after_s:
                 self.writer.write(sim.low_state())
@@ -305,7 +334,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reference", default=None, help="start on this reference's first frame (default: default pose)")
     p.add_argument("--gantry", action="store_true", help="hang the robot in a virtual gantry until --gantry-release")
     p.add_argument("--gantry-release", type=float, default=SimRobotCfg.gantry_release_s,
-                   help="seconds before the gantry lowers the robot onto its feet (over 1 s) and lets go")
+                   help="seconds after the first LowCmd before the gantry lowers the robot onto its feet "
+                        "(over 1 s) and lets go")
     p.add_argument("--physics-hz", type=float, default=SimRobotCfg.physics_hz, help="physics and LowState rate (Hz)")
     p.add_argument("--yaw", type=float, default=0.0, help="initial heading (degrees)")
     p.add_argument("--duration", type=float, default=None, help="exit after this many seconds (default: until Ctrl-C)")
