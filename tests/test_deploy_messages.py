@@ -177,3 +177,14 @@ def test_random_messages_match_the_sdk_live():
                                 reserve=[0] * 4, crc=0)
         assert ours.serialize() == theirs.serialize()
         assert crc.low_cmd_crc(ours) == sdk_crc.Crc(theirs)
+
+
+def test_loopback_discovery_is_unicast_and_real_interfaces_use_the_sdk_configuration():
+    from agents.deploy.dds import cyclonedds_config
+
+    lo = cyclonedds_config("lo")
+    assert '<NetworkInterface name="lo"' in lo and "<AllowMulticast>false</AllowMulticast>" in lo
+    assert '<Peer address="127.0.0.1"/>' in lo and "<ParticipantIndex>auto</ParticipantIndex>" in lo
+    eth = cyclonedds_config("eth0")
+    assert '<NetworkInterface name="eth0"' in eth and "AllowMulticast" not in eth and "Peer" not in eth
+    assert cyclonedds_config(None) is None
