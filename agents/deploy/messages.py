@@ -18,9 +18,12 @@ touches the message objects field by field. Units: rad, rad/s, N·m; the IMU qua
 # time and cannot look up string annotations such as "types.uint8".
 from dataclasses import dataclass, field
 
-import cyclonedds.idl as idl
-import cyclonedds.idl.annotations as annotate
-import cyclonedds.idl.types as types
+try:
+    import cyclonedds.idl as idl
+    import cyclonedds.idl.annotations as annotate
+    import cyclonedds.idl.types as types
+except ImportError as exc:  # the `deploy` extra is optional for training-only installs
+    raise ImportError("deployment needs CycloneDDS: pip install 'otr-gym[deploy]' (cyclonedds>=11)") from exc
 import numpy as np
 
 from otr_gym import robot
