@@ -1,4 +1,5 @@
-"""Procedural G1 references: standing still, and a straight walk with planted feet.
+"""Procedural G1 references: standing still, a straight walk with planted feet, and an in-place
+sway (squats, side sway, waist twist and arm waves over planted feet).
 
 For tests and for the training recipe when no retargeted walk is at hand. The walk is built
 from a footstep plan, not from joint sinusoids, so stance feet do not slide:
@@ -11,6 +12,10 @@ from a footstep plan, not from joint sinusoids, so stance feet do not slide:
 4. each leg's 6 joints solve the foot pose (position + flat orientation) by damped least
    squares on MuJoCo's body Jacobian, warm-started from the previous frame;
 5. arms swing opposite to the legs; waist and wrists stay at the default pose.
+
+The sway keeps both feet on the ground, so an open-loop joint-target player (the deployment's
+"reference policy", ``agents/deploy/reference_policy.py``) can follow it with stiff gains; the
+walk needs a trained, closed-loop policy.
 
 ``python -m agents.procedural walk out.npz`` writes a walk (see ``--help``).
 """
@@ -72,6 +77,43 @@ def walking_reference(spec: WalkSpec = WalkSpec()) -> Reference:
     return Reference.from_qpos(qpos, spec.fps, metadata={
         "source": "procedural", "motion": "walk", "step_length_m": spec.step_length_m,
         "step_time_s": spec.swing_s + spec.double_support_s, "steps": spec.steps})
+
+
+@dataclass(frozen=True)
+class SwaySpec:
+    duration_s: float = 20.0
+    # Amplitudes an open-loop player with stiff gains survives (measured, 500 Hz MuJoCo: these
+    # for 64 s at 13 mm MPJPE; a 6 cm squat with a 3 cm sway topples it after 3.3 s).
+    squat_m: float = 0.04  # pelvis dips this far below its standing height
+    squat_period_s: float = 4.0
+    sway_m: float = 0.02  # side to side over the feet
+    sway_period_s: float = 3.0
+    twist_rad: float = 0.2  # waist yaw amplitude
+    twist_period_s: float = 5.0
+    wave_rad: float = 0.4  # shoulder pitch / elbow amplitude
+    wave_period_s: float = 2.0
+    ease_s: float = 1.0  # amplitudes fade in and out over this time (still stance at both ends)
+    fps: float = 50.0
+
+
+def sway_reference(spec: SwaySpec = SwaySpec()) -> Reference:
+    """Feet planted at the default stance; the pelvis squats and sways (legs solved for flat
+    feet), the waist twists and the arms wave; still default pose at both ends."""
+    t = np.arange(int(round(spec.duration_s * spec.fps)) + 1) / spec.fps
+    ease = np.clip(np.minimum(t, t[-1] - t) / spec.ease_s, 0.0, 1.0)
+    ease = ease * ease * (3 - 2 * ease)
+    qpos = np.tile(robot.default_qpos(), (t.size, 1))
+    qpos[:, 1] += ease * spec.sway_m * np.sin(2 * np.pi * t / spec.sway_period_s)
+    qpos[:, 2] -= ease * spec.squat_m * 0.5 * (1 - np.cos(2 * np.pi * t / spec.squat_period_s))
+    joints = qpos[:, 7:]
+    joints[:, robot.JOINT_NAMES.index("waist_yaw_joint")] += ease * spec.twist_rad * np.sin(
+        2 * np.pi * t / spec.twist_period_s)
+    wave = ease * spec.wave_rad * np.sin(2 * np.pi * t / spec.wave_period_s)
+    for side, sign in (("left", 1.0), ("right", -1.0)):
+        joints[:, robot.JOINT_NAMES.index(f"{side}_shoulder_pitch_joint")] += sign * wave
+        joints[:, robot.JOINT_NAMES.index(f"{side}_elbow_joint")] += 0.5 * np.abs(wave)
+    _solve_legs(qpos, np.repeat(_default_feet()[None], t.size, axis=0))
+    return Reference.from_qpos(qpos, spec.fps, metadata={"source": "procedural", "motion": "sway"})
 
 
 def _footstep_trajectories(spec: WalkSpec) -> tuple[np.ndarray, np.ndarray]:
@@ -161,16 +203,19 @@ def _solve_legs(qpos: np.ndarray, feet_xyz: np.ndarray, iterations: int = 50, da
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m agents.procedural", description=__doc__.split("\n")[0])
-    parser.add_argument("motion", choices=("walk", "stand"))
+    parser.add_argument("motion", choices=("walk", "stand", "sway"))
     parser.add_argument("out", help="output reference .npz (written atomically)")
     parser.add_argument("--steps", type=int, default=WalkSpec.steps, help="walk: number of footsteps")
     parser.add_argument("--step-length", type=float, default=WalkSpec.step_length_m, help="walk: m per step")
-    parser.add_argument("--duration", type=float, default=2.0, help="stand: seconds")
+    parser.add_argument("--duration", type=float, default=None,
+                        help=f"stand / sway: seconds (default 2 / {SwaySpec.duration_s:g})")
     args = parser.parse_args(argv)
     if args.motion == "walk":
         ref = walking_reference(WalkSpec(steps=args.steps, step_length_m=args.step_length))
+    elif args.motion == "sway":
+        ref = sway_reference(SwaySpec(duration_s=args.duration or SwaySpec.duration_s))
     else:
-        ref = standing_reference(args.duration)
+        ref = standing_reference(args.duration or 2.0)
     path = ref.save(args.out)
     print(f"wrote {path}: {ref.num_frames} frames at {ref.fps:g} fps ({ref.duration_s:.1f} s), "
           f"root travels {ref.root_pos_w[-1, 0] - ref.root_pos_w[0, 0]:.2f} m")

@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("agents.evaluate", "success rate and MPJPE of a trained policy"),
     "export": ("agents.export", "export a policy to ONNX with metadata"),
     "play": ("agents.play", "render a policy tracking its reference to a video"),
+    "deploy": ("agents.deploy.runner", "run an exported policy on a G1 over DDS (or replay a deploy log)"),
+    "sim-robot": ("agents.deploy.sim_robot", "a MuJoCo G1 on the low-level DDS interface, for sim2sim"),
 }
 
 

@@ -1,9 +1,10 @@
-"""``otr inspect FILE…``: what is in a demonstration or reference file.
+"""``otr inspect FILE…``: what is in a demonstration, reference or deploy-log file.
 
 References (Holosoma / BeyondMimic / mjlab / ours .npz) report frames, fps, duration, bodies,
 objects, velocity consistency and contact statistics from their annotations; anything else is
 read as a demonstration (AMASS, OMOMO .pt, our demonstration .npz) and reports its parts,
-objects, stature and ground/object contact statistics of the posed human surface.
+objects, stature and ground/object contact statistics of the posed human surface. Deploy logs
+(``otr deploy --log``) report cycle timing, missed deadlines, stage changes and tracking error.
 """
 
 from __future__ import annotations
@@ -29,6 +30,16 @@ def is_reference_file(path: Path) -> bool:
     try:
         with np.load(path, allow_pickle=False) as npz:
             return "joint_pos" in npz.files and "body_pos_w" in npz.files
+    except (OSError, ValueError):
+        return False
+
+
+def _is_deploy_log(path: Path) -> bool:
+    if path.suffix != ".npz":
+        return False
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return "meta" in npz.files and "wake_ns" in npz.files
     except (OSError, ValueError):
         return False
 
@@ -101,6 +112,10 @@ def main(args: argparse.Namespace) -> int:
         try:
             if is_reference_file(path):
                 rows = reference_summary(Reference.load(path))
+            elif _is_deploy_log(path):
+                from agents.deploy.log import DeployLog, summary_rows
+
+                rows = summary_rows(DeployLog.load(path))
             else:
                 rows = demonstration_summary(path, args.object)
         except (InvalidReferenceError, ValueError, FileNotFoundError) as exc:

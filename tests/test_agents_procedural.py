@@ -48,3 +48,16 @@ def test_walk_stance_feet_do_not_slide(walk):
 def test_walk_respects_joint_limits(walk):
     q = walk.dof_pos
     assert (q >= robot.JOINT_LOWER - 1e-9).all() and (q <= robot.JOINT_UPPER + 1e-9).all()
+
+
+def test_sway_keeps_both_feet_planted_while_the_pelvis_squats_and_sways():
+    from agents.procedural import SwaySpec, sway_reference
+
+    spec = SwaySpec(duration_s=6.0)
+    ref = sway_reference(spec)
+    feet = ref.body_pos_w[:, ref.body_index(list(robot.FEET))]  # (T, 2, 3)
+    assert np.abs(feet - feet[:1]).max() < 2e-3  # planted (IK tolerance)
+    z = ref.root_pos_w[:, 2]
+    assert z[0] == pytest.approx(robot.DEFAULT_ROOT_HEIGHT_M) and z[-1] == pytest.approx(robot.DEFAULT_ROOT_HEIGHT_M)
+    assert 0.5 * spec.squat_m < z.max() - z.min() <= spec.squat_m + 1e-9
+    assert np.ptp(ref.root_pos_w[:, 1]) > spec.sway_m

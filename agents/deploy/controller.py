@@ -1,0 +1,175 @@
+"""One policy cycle of the deployment, without any I/O: inputs in, a LowCmd and a log row out.
+
+The live runner (``agents.deploy.runner``) feeds it what DDS and the keyboard delivered; the
+replay (``otr deploy --replay``) feeds it the same inputs read back from a log. Because the
+controller is a deterministic function of its input sequence, a replay reproduces the
+recorded actions exactly (same observation code, same ONNX session).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from otr_gym import robot
+
+from agents.deploy import safety
+from agents.deploy.messages import REMOTE_KEYS, JointCommand, RobotState
+from agents.deploy.observation import ObservationBuilder, PolicySpec, torso_tilt_rad
+from agents.deploy.safety import DampReason, SafetyCfg, Stage, StageMachine
+
+#: Operator key bits (keyboard events and the remote's buttons map onto these).
+KEY_START = 1
+KEY_ESTOP = 2
+KEY_STOP = 4
+
+
+@dataclass(frozen=True)
+class CycleInput:
+    t_s: float  # time since the runner started (steady clock), s
+    state: RobotState | None  # the LowState taken this cycle; None when none arrived
+    crc_ok: bool = True  # that LowState's CRC matched
+    keys: int = 0  # KEY_* bits pressed on the keyboard since the last cycle
+
+
+@dataclass
+class CycleOutput:
+    command: JointCommand | None  # None: send nothing (no state yet)
+    stage: Stage
+    frame: int  # target reference frame while tracking, else -1
+    observation: np.ndarray | None
+    action: np.ndarray | None  # raw policy output (before the clip)
+    tilt_rad: float
+    mpjpe_m: float
+
+
+@dataclass
+class ControllerCfg:
+    safety: SafetyCfg
+    auto_start: bool = False  # track as soon as the ramp ends (sim2sim, tests)
+    duration_s: float | None = None  # stop tracking after this long
+
+
+Policy = Callable[[np.ndarray], np.ndarray]  # (D,) float32 -> (29,)
+
+
+def remote_keys_to_operator(keys: int) -> int:
+    """Remote buttons → KEY_* bits: Start starts, Select is the e-stop."""
+    out = 0
+    if keys & REMOTE_KEYS["start"]:
+        out |= KEY_START
+    if keys & REMOTE_KEYS["select"]:
+        out |= KEY_ESTOP
+    return out
+
+
+class Controller:
+    def __init__(self, spec: PolicySpec, builder: ObservationBuilder, policy: Policy, cfg: ControllerCfg):
+        self.spec, self.builder, self.policy, self.cfg = spec, builder, policy, cfg
+        self.stages = StageMachine()
+        self.cycle = -1
+        self.state: RobotState | None = None
+        self.cycles_without_state = 0
+        self._ramp_q0: np.ndarray | None = None
+        self._ramp_t0 = 0.0
+        self._track_t0 = 0.0
+        self.frame = -1
+        self.last_action = np.zeros(robot.NUM_JOINTS)
+        self._remote_prev = 0
+
+    @property
+    def stage(self) -> Stage:
+        return self.stages.stage
+
+    def _damp(self, reason: str) -> None:
+        self.stages.go(Stage.DAMP, self.cycle, reason)
+
+    def step(self, inp: CycleInput) -> CycleOutput:
+        self.cycle += 1
+        self._ingest(inp)
+        keys = inp.keys
+        if self.state is not None:
+            remote = remote_keys_to_operator(self.state.remote_keys)
+            keys |= remote & ~self._remote_prev  # button presses (rising edges)
+            self._remote_prev = remote
+        if keys & KEY_ESTOP:
+            self._damp(DampReason.ESTOP)
+        elif keys & KEY_STOP:
+            self._damp(DampReason.STOP)
+
+        tilt = float("nan")
+        if self.state is not None and self.stage != Stage.DAMP:
+            _, body_quat = self.builder.kinematics.body_poses(self.state.quat_wxyz, self.state.joint_pos)
+            tilt = torso_tilt_rad(body_quat[self.builder.anchor])
+            if fault := safety.tilt_fault(tilt, self.cfg.safety):
+                self._damp(fault)
+
+        out = CycleOutput(command=None, stage=self.stage, frame=-1, observation=None, action=None,
+                          tilt_rad=tilt, mpjpe_m=float("nan"))
+        if self.stage == Stage.WAIT:
+            if self.state is None:
+                return out
+            self._ramp_q0, self._ramp_t0 = self.state.joint_pos.copy(), inp.t_s
+            self.stages.go(Stage.RAMP, self.cycle, "state")
+        if self.stage == Stage.RAMP:
+            progress = 1.0 if self.cfg.safety.ramp_s == 0 else (inp.t_s - self._ramp_t0) / self.cfg.safety.ramp_s
+            if progress >= 1.0:
+                self.stages.go(Stage.HOLD, self.cycle, "ramp_done")
+            else:
+                out.command = safety.ramp_command(self._ramp_q0, self.spec.default_joint_pos, progress)
+        if self.stage == Stage.HOLD:
+            if self.cfg.auto_start or keys & KEY_START:
+                self._start_tracking(inp.t_s, "auto_start" if self.cfg.auto_start else "operator")
+            else:
+                out.command = safety.ramp_command(self.spec.default_joint_pos, self.spec.default_joint_pos, 1.0)
+        if self.stage == Stage.TRACK:
+            self._track(inp.t_s, out)
+        if self.stage == Stage.DAMP:
+            out.command = safety.damping_command(self.cfg.safety)
+        out.stage = self.stage
+        return out
+
+    # ------------------------------------------------------------ internals
+    def _ingest(self, inp: CycleInput) -> None:
+        if inp.state is None:
+            if self.state is not None:
+                self.cycles_without_state += 1
+                if self.cycles_without_state >= self.cfg.safety.stale_cycles:
+                    self._damp(DampReason.STALE_STATE)
+            return
+        if fault := safety.state_fault(inp.crc_ok, inp.state.is_finite()):
+            self._damp(fault)
+            return  # the last good state stays
+        self.state = inp.state
+        self.cycles_without_state = 0
+
+    def _start_tracking(self, t_s: float, reason: str) -> None:
+        self.builder.align(self.builder.heading_alignment(self.state))
+        self.frame = 1  # the robot stands on frame 0; the observation shows the target frame 1
+        self.last_action = np.zeros(robot.NUM_JOINTS)
+        self._track_t0 = t_s
+        self.stages.go(Stage.TRACK, self.cycle, reason)
+
+    def _track(self, t_s: float, out: CycleOutput) -> None:
+        if self.frame >= self.builder.num_frames:
+            self._damp(DampReason.CLIP_END)
+            return
+        if self.cfg.duration_s is not None and t_s - self._track_t0 >= self.cfg.duration_s:
+            self._damp(DampReason.DURATION)
+            return
+        s = self.builder.tracking_state(self.state, self.frame, self.last_action)
+        obs = self.builder.observation(s)
+        raw = np.asarray(self.policy(obs), dtype=np.float64).reshape(-1)
+        out.observation, out.action, out.frame = obs, raw, self.frame
+        out.mpjpe_m = self.builder.mpjpe_m(s)
+        if fault := safety.action_fault(raw):
+            self._damp(fault)
+            return
+        clip = self.spec.action_clip
+        action = np.clip(raw, -clip, clip)
+        targets = self.spec.default_joint_pos + self.spec.action_scale * action
+        out.command = safety.policy_command(targets, self.spec.kp, self.spec.kd, self.cfg.safety)
+        self.last_action = action
+        self.frame += 1

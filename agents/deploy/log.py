@@ -1,0 +1,215 @@
+"""The deployment's cycle log: every policy cycle's timing, inputs, observation, action,
+command and stage, saved as one ``.npz`` (atomically) that ``otr inspect`` summarises and
+``otr deploy --replay`` re-runs.
+
+Arrays (C cycles; NaN where a quantity did not exist that cycle, e.g. no action before TRACK):
+
+- timing (int64 ns from the runner's start, steady clock): ``deadline_ns`` (the cycle's slot on
+  the absolute 50 Hz grid), ``wake_ns`` (loop woke), ``publish_ns`` (LowCmd written);
+  ``t_s`` (float64 s, the controller's time input);
+- inputs: ``fresh`` (a new LowState arrived), ``crc_ok``, ``keys`` (keyboard KEY_* bits),
+  ``state_q``/``state_dq`` (C, 29), ``state_quat_wxyz`` (C, 4), ``state_gyro_b``,
+  ``state_accel_b`` (C, 3), ``state_tick_ms``, ``state_mode_machine``, ``state_remote_keys``;
+- outputs: ``stage`` (``safety.Stage``), ``frame`` (target frame, −1 when not tracking),
+  ``observation`` (C, D) float32, ``action`` (C, 29) raw policy output, ``command`` (C, 5, 29)
+  rows q, dq, kp, kd, τ, ``tilt_rad``, ``mpjpe_m``;
+- ``transition_cycle``/``transition_from``/``transition_to``/``transition_reason``;
+- ``meta``: JSON (policy and reference paths with SHA-256, configuration, machine).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from otr_gym import robot
+from otr_gym.io import save_npz
+
+from agents.deploy.controller import CycleInput, CycleOutput
+from agents.deploy.messages import RobotState
+from agents.deploy.safety import Stage, Transition
+
+FORMAT = "otr-gym-deploy-log/1"
+NS = 1_000_000_000
+
+
+def file_sha256(path: str | Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+class CycleLog:
+    """Rows appended per cycle into growing preallocated arrays (no allocation per cycle
+    except when a chunk fills)."""
+
+    CHUNK = 4096
+
+    def __init__(self, observation_dim: int, meta: dict):
+        self.meta = dict(meta, format=FORMAT)
+        self.n = 0
+        J = robot.NUM_JOINTS
+        self._shapes = {
+            "deadline_ns": ((), np.int64), "wake_ns": ((), np.int64), "publish_ns": ((), np.int64),
+            "t_s": ((), np.float64), "fresh": ((), bool), "crc_ok": ((), bool), "keys": ((), np.int8),
+            "state_q": ((J,), np.float64), "state_dq": ((J,), np.float64), "state_quat_wxyz": ((4,), np.float64),
+            "state_gyro_b": ((3,), np.float64), "state_accel_b": ((3,), np.float64),
+            "state_tick_ms": ((), np.int64), "state_mode_machine": ((), np.int16), "state_remote_keys": ((), np.int32),
+            "stage": ((), np.int8), "frame": ((), np.int32), "observation": ((observation_dim,), np.float32),
+            "action": ((J,), np.float64), "command": ((5, J), np.float64), "tilt_rad": ((), np.float64),
+            "mpjpe_m": ((), np.float64),
+        }
+        self._arrays = {k: self._empty(k, self.CHUNK) for k in self._shapes}
+
+    def _empty(self, key: str, rows: int) -> np.ndarray:
+        shape, dtype = self._shapes[key]
+        fill = np.nan if np.issubdtype(dtype, np.floating) else 0
+        return np.full((rows, *shape), fill, dtype=dtype)
+
+    def append(self, inp: CycleInput, out: CycleOutput, deadline_ns: int, wake_ns: int, publish_ns: int) -> None:
+        if self.n == len(self._arrays["t_s"]):
+            self._arrays = {k: np.concatenate([a, self._empty(k, self.CHUNK)]) for k, a in self._arrays.items()}
+        a, i = self._arrays, self.n
+        a["deadline_ns"][i], a["wake_ns"][i], a["publish_ns"][i] = deadline_ns, wake_ns, publish_ns
+        a["t_s"][i], a["fresh"][i] = inp.t_s, inp.state is not None
+        a["crc_ok"][i], a["keys"][i] = inp.crc_ok, inp.keys
+        s = inp.state
+        if s is not None:
+            a["state_q"][i], a["state_dq"][i], a["state_quat_wxyz"][i] = s.joint_pos, s.joint_vel, s.quat_wxyz
+            a["state_gyro_b"][i], a["state_accel_b"][i] = s.gyro_b, s.accel_b
+            a["state_tick_ms"][i], a["state_mode_machine"][i] = s.tick_ms, s.mode_machine
+            a["state_remote_keys"][i] = s.remote_keys
+        a["stage"][i], a["frame"][i] = out.stage, out.frame
+        a["tilt_rad"][i], a["mpjpe_m"][i] = out.tilt_rad, out.mpjpe_m
+        if out.observation is not None:
+            a["observation"][i] = out.observation
+        if out.action is not None:
+            a["action"][i] = out.action
+        if out.command is not None:
+            a["command"][i] = out.command.as_array()
+        self.n += 1
+
+    def save(self, path: str | Path, transitions: list[Transition]) -> Path:
+        arrays = {k: v[: self.n] for k, v in self._arrays.items()}
+        arrays["transition_cycle"] = np.array([t.cycle for t in transitions], dtype=np.int64)
+        arrays["transition_from"] = np.array([int(t.source) for t in transitions], dtype=np.int8)
+        arrays["transition_to"] = np.array([int(t.target) for t in transitions], dtype=np.int8)
+        arrays["transition_reason"] = np.array([t.reason for t in transitions], dtype=str)
+        arrays["meta"] = np.array(json.dumps(self.meta))
+        return save_npz(path, arrays)
+
+
+@dataclass
+class DeployLog:
+    path: Path
+    arrays: dict[str, np.ndarray]
+    meta: dict
+
+    @classmethod
+    def load(cls, path: str | Path) -> DeployLog:
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: deploy log not found")
+        try:
+            with np.load(path, allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+            meta = json.loads(str(arrays.pop("meta")))
+        except (OSError, ValueError, KeyError) as exc:
+            raise ValueError(f"{path}: not a readable deploy log ({exc})") from exc
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
+        return cls(path, arrays, meta)
+
+    @property
+    def num_cycles(self) -> int:
+        return len(self.arrays["t_s"])
+
+    def inputs(self) -> list[CycleInput]:
+        """The controller inputs of every cycle, as recorded."""
+        a = self.arrays
+        out = []
+        for i in range(self.num_cycles):
+            state = None
+            if a["fresh"][i]:
+                state = RobotState(joint_pos=a["state_q"][i], joint_vel=a["state_dq"][i],
+                                   quat_wxyz=a["state_quat_wxyz"][i], gyro_b=a["state_gyro_b"][i],
+                                   accel_b=a["state_accel_b"][i], tick_ms=int(a["state_tick_ms"][i]),
+                                   mode_machine=int(a["state_mode_machine"][i]),
+                                   remote_keys=int(a["state_remote_keys"][i]))
+            out.append(CycleInput(t_s=float(a["t_s"][i]), state=state, crc_ok=bool(a["crc_ok"][i]),
+                                  keys=int(a["keys"][i])))
+        return out
+
+    def transitions(self) -> list[tuple[float, str, str, str]]:
+        """(time s, from, to, reason) of every stage change."""
+        a = self.arrays
+        t = a["t_s"]
+        return [(float(t[c]) if c < len(t) else float("nan"), Stage(f).name, Stage(to).name, str(r))
+                for c, f, to, r in zip(a["transition_cycle"], a["transition_from"], a["transition_to"],
+                                       a["transition_reason"], strict=True)]
+
+
+def timing_stats(deadline_ns: np.ndarray, wake_ns: np.ndarray, publish_ns: np.ndarray, period_ns: int) -> dict:
+    """Loop timing in ms: period (wake to wake), its error against the nominal period,
+    wake lateness (wake − deadline), compute (publish − wake), and missed deadlines (a cycle
+    whose command went out after the next cycle's slot, plus grid slots skipped)."""
+    ms = 1e-6
+    period = np.diff(wake_ns) * ms
+    error = np.abs(period - period_ns * ms)
+    late = (wake_ns - deadline_ns) * ms
+    compute = (publish_ns - wake_ns) * ms
+    skipped = int(np.maximum(np.diff(deadline_ns) // period_ns - 1, 0).sum())
+    overran = int((publish_ns > deadline_ns + period_ns).sum())
+
+    def pct(x: np.ndarray) -> dict:
+        if x.size == 0:
+            return {"p50": float("nan"), "p99": float("nan"), "max": float("nan")}
+        return {"p50": float(np.percentile(x, 50)), "p99": float(np.percentile(x, 99)), "max": float(x.max())}
+
+    return {
+        "cycles": int(len(wake_ns)),
+        "period_ms": pct(period), "period_error_ms": pct(error),
+        "jitter_ms": float(period.std()) if period.size else float("nan"),
+        "lateness_ms": pct(late), "compute_ms": pct(compute),
+        "missed_deadlines": skipped + overran,
+    }
+
+
+def log_timing(log: DeployLog) -> dict:
+    a = log.arrays
+    return timing_stats(a["deadline_ns"], a["wake_ns"], a["publish_ns"], int(log.meta["period_ns"]))
+
+
+def summary_rows(log: DeployLog) -> list[tuple[str, str]]:
+    """``otr inspect`` rows for a deploy log."""
+    a, m = log.arrays, log.meta
+    stage = a["stage"]
+    track = stage == Stage.TRACK
+    tm = log_timing(log)
+    rows = [
+        ("kind", f"deploy log ({'replayable' if m.get('policy') else 'no policy'})"),
+        ("cycles", f"{log.num_cycles} @ {1e9 / m['period_ns']:g} Hz ({log.num_cycles * m['period_ns'] / NS:.1f} s), "
+                   f"{int(track.sum())} tracking"),
+        ("policy", f"{m.get('policy', {}).get('path', '?')}"),
+        ("reference", f"{m.get('reference', {}).get('path', '?')}"),
+        ("transport", f"interface {m.get('interface') or '(auto)'}, domain {m.get('domain_id')}"),
+    ]
+    for t, src, dst, reason in log.transitions():
+        rows.append(("stage", f"{t:8.3f} s  {src} → {dst} ({reason})"))
+    p, e, late, comp = tm["period_ms"], tm["period_error_ms"], tm["lateness_ms"], tm["compute_ms"]
+    rows += [
+        ("cycle period", f"p50 {p['p50']:.3f} / p99 {p['p99']:.3f} / max {p['max']:.3f} ms, jitter (std) "
+                         f"{tm['jitter_ms']:.3f} ms"),
+        ("period error", f"p99 {e['p99']:.3f} / max {e['max']:.3f} ms"),
+        ("wake lateness", f"p50 {late['p50']:.3f} / p99 {late['p99']:.3f} / max {late['max']:.3f} ms"),
+        ("compute", f"p50 {comp['p50']:.3f} / p99 {comp['p99']:.3f} / max {comp['max']:.3f} ms"),
+        ("missed deadlines", str(tm["missed_deadlines"])),
+        ("LowState", f"{a['fresh'].mean():.1%} of cycles fresh, {int((~a['crc_ok']).sum())} bad CRC"),
+    ]
+    if track.any():
+        rows.append(("MPJPE", f"{np.nanmean(a['mpjpe_m'][track]) * 1e3:.1f} mm mean over tracking "
+                              f"(max {np.nanmax(a['mpjpe_m'][track]) * 1e3:.1f} mm)"))
+        rows.append(("torso tilt", f"max {np.degrees(np.nanmax(a['tilt_rad'][track])):.1f}° while tracking"))
+    return rows

@@ -1,0 +1,185 @@
+"""The ``unitree_hg`` low-level messages of the G1 (RL_SPEC §9), as CycloneDDS IDL structs.
+
+Our own definitions of Unitree's ``unitree_hg::msg::dds_`` types: same DDS type names, field
+order, field types and array sizes as the IDL shipped with Unitree SDK2 (``LowCmd_.idl``,
+``LowState_.idl``, ``MotorCmd_.idl``, ``MotorState_.idl``, ``IMUState_.idl``), all ``@final``,
+so a robot or a controller built on the SDK reads what we write, byte for byte
+(``tests/test_deploy_messages.py`` checks the layout, and the bytes against the SDK when it is
+importable). We do not depend on the SDK's Python package: ``unitree_sdk2`` 1.0.1 pins
+``cyclonedds==0.10.2`` (no CPython 3.11 wheel) and its wheel does not import (its ``__init__``
+imports a ``b2`` subpackage the wheel lacks).
+
+Conversions to and from NumPy arrays in policy joint order live here too, so nothing else
+touches the message objects field by field. Units: rad, rad/s, N·m; the IMU quaternion is
+**wxyz**; the gyroscope is in the pelvis (IMU) frame.
+"""
+
+# No ``from __future__ import annotations``: CycloneDDS resolves the field annotations at run
+# time and cannot look up string annotations such as "types.uint8".
+from dataclasses import dataclass, field
+
+try:
+    import cyclonedds.idl as idl
+    import cyclonedds.idl.annotations as annotate
+    import cyclonedds.idl.types as types
+except ImportError as exc:  # the `deploy` extra is optional for training-only installs
+    raise ImportError("deployment needs CycloneDDS: pip install 'otr-gym[deploy]' (cyclonedds>=11)") from exc
+import numpy as np
+
+from otr_gym import robot
+
+NUM_MOTORS = robot.NUM_MOTOR_SLOTS  # 35 slots; the 29-DoF G1 uses 0..28
+WIRELESS_REMOTE_BYTES = 40
+
+TOPIC_LOWSTATE = "rt/lowstate"
+TOPIC_LOWCMD = "rt/lowcmd"
+
+#: LowCmd mode fields used on the G1 (RL_SPEC §9): pitch/roll ankle mode, motors enabled.
+MODE_PR = 0
+MOTOR_MODE_ENABLE = 1
+
+
+@dataclass
+@annotate.final
+@annotate.autoid("sequential")
+class MotorCmd_(idl.IdlStruct, typename="unitree_hg.msg.dds_.MotorCmd_"):
+    mode: types.uint8 = 0
+    q: types.float32 = 0.0
+    dq: types.float32 = 0.0
+    tau: types.float32 = 0.0
+    kp: types.float32 = 0.0
+    kd: types.float32 = 0.0
+    reserve: types.uint32 = 0
+
+
+@dataclass
+@annotate.final
+@annotate.autoid("sequential")
+class MotorState_(idl.IdlStruct, typename="unitree_hg.msg.dds_.MotorState_"):
+    mode: types.uint8 = 0
+    q: types.float32 = 0.0
+    dq: types.float32 = 0.0
+    ddq: types.float32 = 0.0
+    tau_est: types.float32 = 0.0
+    temperature: types.array[types.int16, 2] = field(default_factory=lambda: [0, 0])
+    vol: types.float32 = 0.0
+    sensor: types.array[types.uint32, 2] = field(default_factory=lambda: [0, 0])
+    motorstate: types.uint32 = 0
+    reserve: types.array[types.uint32, 4] = field(default_factory=lambda: [0] * 4)
+
+
+@dataclass
+@annotate.final
+@annotate.autoid("sequential")
+class IMUState_(idl.IdlStruct, typename="unitree_hg.msg.dds_.IMUState_"):
+    quaternion: types.array[types.float32, 4] = field(default_factory=lambda: [1.0, 0.0, 0.0, 0.0])  # wxyz
+    gyroscope: types.array[types.float32, 3] = field(default_factory=lambda: [0.0] * 3)  # rad/s, body
+    accelerometer: types.array[types.float32, 3] = field(default_factory=lambda: [0.0] * 3)  # m/s², body
+    rpy: types.array[types.float32, 3] = field(default_factory=lambda: [0.0] * 3)  # rad
+    temperature: types.int16 = 0
+
+
+@dataclass
+@annotate.final
+@annotate.autoid("sequential")
+class LowCmd_(idl.IdlStruct, typename="unitree_hg.msg.dds_.LowCmd_"):
+    mode_pr: types.uint8 = 0
+    mode_machine: types.uint8 = 0
+    motor_cmd: types.array[MotorCmd_, 35] = field(default_factory=lambda: [MotorCmd_() for _ in range(NUM_MOTORS)])
+    reserve: types.array[types.uint32, 4] = field(default_factory=lambda: [0] * 4)
+    crc: types.uint32 = 0
+
+
+@dataclass
+@annotate.final
+@annotate.autoid("sequential")
+class LowState_(idl.IdlStruct, typename="unitree_hg.msg.dds_.LowState_"):
+    version: types.array[types.uint32, 2] = field(default_factory=lambda: [0, 0])
+    mode_pr: types.uint8 = 0
+    mode_machine: types.uint8 = 0
+    tick: types.uint32 = 0  # ms
+    imu_state: IMUState_ = field(default_factory=IMUState_)
+    motor_state: types.array[MotorState_, 35] = field(
+        default_factory=lambda: [MotorState_() for _ in range(NUM_MOTORS)])
+    wireless_remote: types.array[types.uint8, 40] = field(default_factory=lambda: [0] * WIRELESS_REMOTE_BYTES)
+    reserve: types.array[types.uint32, 4] = field(default_factory=lambda: [0] * 4)
+    crc: types.uint32 = 0
+
+
+# ------------------------------------------------------------------ NumPy views
+
+
+@dataclass(frozen=True)
+class JointCommand:
+    """One LowCmd in policy joint order (29,) each: PD targets and gains, feed-forward torque."""
+
+    q: np.ndarray  # rad
+    dq: np.ndarray  # rad/s
+    kp: np.ndarray  # N·m/rad
+    kd: np.ndarray  # N·m·s/rad
+    tau: np.ndarray  # N·m
+
+    def as_array(self) -> np.ndarray:
+        """(5, 29): q, dq, kp, kd, tau (the log's layout)."""
+        return np.stack([self.q, self.dq, self.kp, self.kd, self.tau])
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """What a LowState says about the robot, in policy joint order; float64."""
+
+    joint_pos: np.ndarray  # (29,) rad
+    joint_vel: np.ndarray  # (29,) rad/s
+    quat_wxyz: np.ndarray  # (4,) pelvis IMU orientation
+    gyro_b: np.ndarray  # (3,) rad/s, pelvis frame
+    accel_b: np.ndarray  # (3,) m/s², pelvis frame
+    tick_ms: int
+    mode_machine: int
+    remote_keys: int  # 16 button bits of the wireless remote (see REMOTE_KEYS)
+
+    def is_finite(self) -> bool:
+        return bool(np.isfinite(self.joint_pos).all() and np.isfinite(self.joint_vel).all()
+                    and np.isfinite(self.quat_wxyz).all() and np.isfinite(self.gyro_b).all())
+
+
+#: Button bits of the 16-bit key field of the wireless remote (bytes 2..3 of ``wireless_remote``,
+#: little-endian), as in Unitree SDK2's gamepad key union.
+REMOTE_KEYS = {name: 1 << i for i, name in enumerate(
+    ("R1", "L1", "start", "select", "R2", "L2", "F1", "F2", "A", "B", "X", "Y", "up", "right", "down", "left"))}
+
+
+def low_cmd(command: JointCommand, mode_machine: int) -> LowCmd_:
+    """A LowCmd_ (CRC not yet set) driving motors 0..28 with ``command``; slots 29..34 disabled."""
+    motors = [MotorCmd_() for _ in range(NUM_MOTORS)]
+    for j, slot in enumerate(robot.MOTOR_INDEX):
+        motors[slot] = MotorCmd_(mode=MOTOR_MODE_ENABLE, q=float(command.q[j]), dq=float(command.dq[j]),
+                                 tau=float(command.tau[j]), kp=float(command.kp[j]), kd=float(command.kd[j]))
+    return LowCmd_(mode_pr=MODE_PR, mode_machine=int(mode_machine), motor_cmd=motors)
+
+
+def joint_command(msg: LowCmd_) -> JointCommand:
+    """The policy-order arrays of a LowCmd_ (float64)."""
+    m = [msg.motor_cmd[slot] for slot in robot.MOTOR_INDEX]
+    return JointCommand(q=np.array([c.q for c in m]), dq=np.array([c.dq for c in m]),
+                        kp=np.array([c.kp for c in m]), kd=np.array([c.kd for c in m]),
+                        tau=np.array([c.tau for c in m]))
+
+
+def robot_state(msg: LowState_) -> RobotState:
+    """The policy-order arrays of a LowState_."""
+    m = [msg.motor_state[slot] for slot in robot.MOTOR_INDEX]
+    remote = msg.wireless_remote
+    return RobotState(
+        joint_pos=np.array([s.q for s in m]), joint_vel=np.array([s.dq for s in m]),
+        quat_wxyz=np.array(msg.imu_state.quaternion, dtype=np.float64),
+        gyro_b=np.array(msg.imu_state.gyroscope, dtype=np.float64),
+        accel_b=np.array(msg.imu_state.accelerometer, dtype=np.float64),
+        tick_ms=int(msg.tick), mode_machine=int(msg.mode_machine),
+        remote_keys=int(remote[2]) | (int(remote[3]) << 8))
+
+
+def remote_bytes(keys: int) -> list[int]:
+    """A 40-byte ``wireless_remote`` field with the given key bits set (sticks centred)."""
+    out = [0] * WIRELESS_REMOTE_BYTES
+    out[2], out[3] = keys & 0xFF, (keys >> 8) & 0xFF
+    return out

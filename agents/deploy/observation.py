@@ -1,0 +1,239 @@
+"""The policy's observation rebuilt on the robot from the ONNX metadata alone.
+
+``PolicySpec`` reads what ``otr export --onnx`` wrote (joint order, default pose, kp/kd,
+action scale and clip, observation layout and clip, anchor and tracked bodies, fps).
+``ObservationBuilder`` turns one LowState into the observation vector with the training code
+itself: it fills an ``envs.mdp.state.TrackingState`` for one env and calls the term functions
+of ``envs.mdp.observations`` named in the layout, in order, then clips like
+``envs.task.TrackingTask.observations`` (deployment has no observation noise).
+
+What the robot measures and how it maps onto the training state:
+
+- joint positions/velocities: the motors (policy order = motor order);
+- pelvis orientation (wxyz) and angular velocity (pelvis frame): the IMU;
+- body poses (the 14 tracked bodies, the torso anchor among them): forward kinematics of the
+  training MJCF (MuJoCo ``mj_kinematics``) from the IMU orientation and the joint angles, with
+  the pelvis at the world origin. Orientations and anchor-relative positions are exact; world
+  positions and linear velocities are unknown, so terms that need them (``anchor_pos_b``,
+  ``base_lin_vel_b``: mjlab's state-estimation variant) are refused at start-up, and any other
+  term that reads an unmeasured field sees NaN there and is refused the same way.
+
+Reference timing follows training (``envs.mdp.commands``): the robot stands on start frame 0,
+the observation shows target frame 1, and every policy step advances the target by one frame.
+
+Yaw alignment at policy start (RL_SPEC §9): the IMU's heading is arbitrary, so when tracking
+starts the heading difference Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) is recorded, and the
+whole clip is rotated by Δ about the world z axis (``otr_gym.rotations``, the same maths as
+``envs.mdp.state.aligned_targets``). In training the robot starts on its reference, so Δ ≈ 0
+there and the observation is the same.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from envs.mdp import observations as obs_terms
+from envs.mdp.metrics import mpjpe_root_relative
+from envs.mdp.motion import MotionLibrary
+from envs.mdp.state import TrackingState
+from otr_gym import robot
+from otr_gym.rotations import quat_apply, quat_conj, quat_mul, quat_to_matrix, quat_yaw
+
+from agents.deploy.messages import RobotState
+
+#: Terms that need what the G1's low-level state does not give.
+UNOBSERVABLE_TERMS = {
+    "anchor_pos_b": "the robot's world position",
+    "base_lin_vel_b": "the pelvis linear velocity",
+}
+
+
+class PolicySpecError(ValueError):
+    """The ONNX metadata cannot drive the G1 (missing field, wrong joints, unobservable term)."""
+
+
+@dataclass(frozen=True)
+class PolicySpec:
+    """What the runner needs from an exported policy besides its weights (SI units, policy order)."""
+
+    source: str
+    default_joint_pos: np.ndarray  # (29,) rad
+    kp: np.ndarray  # (29,) N·m/rad
+    kd: np.ndarray  # (29,) N·m·s/rad
+    action_scale: np.ndarray  # (29,) rad per unit action
+    action_clip: float
+    observation_layout: tuple[tuple[str, int], ...]  # (term function, dim) in order
+    observation_clip: float
+    anchor_body: str
+    body_names: tuple[str, ...]
+    fps: float
+    policy_dt: float  # s
+
+    @property
+    def observation_dim(self) -> int:
+        return sum(d for _, d in self.observation_layout)
+
+    @classmethod
+    def from_metadata(cls, meta: dict, source: str = "<metadata>") -> PolicySpec:
+        need = ("joint_names", "default_joint_pos", "joint_stiffness", "joint_damping", "action_scale",
+                "observation_layout", "observation_clip", "anchor_body_name", "body_names", "fps")
+        missing = [k for k in need if k not in meta]
+        if missing:
+            raise PolicySpecError(f"{source}: metadata lacks {missing} (export it with `otr export --onnx`)")
+        if list(meta["joint_names"]) != list(robot.JOINT_NAMES):
+            raise PolicySpecError(f"{source}: joint order {meta['joint_names']} is not the G1 motor order "
+                                  f"{list(robot.JOINT_NAMES)}")
+        arrays = {}
+        for key in ("default_joint_pos", "joint_stiffness", "joint_damping", "action_scale"):
+            a = np.asarray(meta[key], dtype=np.float64)
+            if a.shape != (robot.NUM_JOINTS,) or not np.isfinite(a).all():
+                raise PolicySpecError(f"{source}: '{key}' must be {robot.NUM_JOINTS} finite numbers, got {meta[key]}")
+            arrays[key] = a
+        layout = tuple((str(t["name"]), int(t["dim"])) for t in meta["observation_layout"])
+        for name, _ in layout:
+            if name in UNOBSERVABLE_TERMS:
+                raise PolicySpecError(f"{source}: observation term '{name}' needs {UNOBSERVABLE_TERMS[name]}, "
+                                      "which the G1's low-level state does not give; deploy a policy trained "
+                                      "without it (the default 154-dim actor)")
+        fps = float(meta["fps"])
+        return cls(source=source, default_joint_pos=arrays["default_joint_pos"], kp=arrays["joint_stiffness"],
+                   kd=arrays["joint_damping"], action_scale=arrays["action_scale"],
+                   action_clip=float(meta.get("action_clip", np.inf)), observation_layout=layout,
+                   observation_clip=float(meta["observation_clip"]), anchor_body=str(meta["anchor_body_name"]),
+                   body_names=tuple(meta["body_names"]), fps=fps, policy_dt=float(meta.get("policy_dt", 1.0 / fps)))
+
+    @classmethod
+    def from_onnx(cls, path: str | Path) -> PolicySpec:
+        from agents.export import read_metadata
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: policy file not found")
+        return cls.from_metadata(read_metadata(path), str(path))
+
+
+class RobotKinematics:
+    """Forward kinematics of the G1 MJCF: tracked-body poses from IMU orientation + joints."""
+
+    def __init__(self, body_names: tuple[str, ...]):
+        import mujoco
+
+        self._mj = mujoco
+        self.model = robot.load_mujoco_model(visual=False)
+        self.data = mujoco.MjData(self.model)
+        self.body_ids = np.array([self.model.body(b).id for b in body_names])
+
+    def body_poses(self, quat_wxyz: np.ndarray, joint_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 3) positions (m, pelvis at the origin) and (K, 4) orientations (wxyz), world."""
+        qpos = self.data.qpos
+        qpos[:3] = 0.0
+        qpos[3:7] = quat_wxyz / np.linalg.norm(quat_wxyz)
+        qpos[7:7 + robot.NUM_JOINTS] = joint_pos
+        self._mj.mj_kinematics(self.model, self.data)
+        return self.data.xpos[self.body_ids].copy(), self.data.xquat[self.body_ids].copy()
+
+
+def torso_tilt_rad(anchor_quat_wxyz: np.ndarray) -> float:
+    """Angle (rad) between the body's z axis and the world's vertical."""
+    return float(np.arccos(np.clip(quat_to_matrix(anchor_quat_wxyz)[2, 2], -1.0, 1.0)))
+
+
+class ObservationBuilder:
+    """Observation vectors for a ``PolicySpec`` tracking one reference clip (see module doc)."""
+
+    def __init__(self, spec: PolicySpec, reference):
+        missing = [b for b in (spec.anchor_body, "pelvis") if b not in spec.body_names]
+        if missing:
+            raise PolicySpecError(f"{spec.source}: tracked bodies {spec.body_names} lack {missing}")
+        self.spec = spec
+        self.motion = MotionLibrary.load(reference, spec.body_names, fps=spec.fps)
+        if self.motion.num_clips != 1:
+            raise PolicySpecError(f"{reference}: deployment tracks one clip, got {self.motion.num_clips}")
+        self.num_frames = int(self.motion.clip_length[0])
+        self.anchor = spec.body_names.index(spec.anchor_body)
+        self.kinematics = RobotKinematics(spec.body_names)
+        self._terms = [(name, dim, getattr(obs_terms, name, None)) for name, dim in spec.observation_layout]
+        unknown = [n for n, _, fn in self._terms if not callable(fn) or n.startswith("_")]
+        if unknown:
+            raise PolicySpecError(f"{spec.source}: unknown observation terms {unknown} (not in envs.mdp.observations)")
+        self._default = torch.as_tensor(spec.default_joint_pos, dtype=torch.float32)[None]
+        self.align(np.array([1.0, 0.0, 0.0, 0.0]))
+        self._check_terms()
+
+    # ------------------------------------------------------------ reference alignment
+    def align(self, delta_wxyz: np.ndarray) -> None:
+        """Rotate the whole clip by the heading ``delta_wxyz`` (world z) about the origin."""
+        m = self.motion
+        d = torch.as_tensor(delta_wxyz, dtype=torch.float32)
+        self.heading_delta = np.asarray(delta_wxyz, dtype=np.float64)
+        self.ref_body_pos_w = quat_apply(d.expand(*m.body_pos_w.shape[:-1], 4), m.body_pos_w)
+        self.ref_body_quat_w = quat_mul(d.expand_as(m.body_quat_w), m.body_quat_w)
+        self.ref_body_lin_vel_w = quat_apply(d.expand(*m.body_lin_vel_w.shape[:-1], 4), m.body_lin_vel_w)
+        self.ref_body_ang_vel_w = quat_apply(d.expand(*m.body_ang_vel_w.shape[:-1], 4), m.body_ang_vel_w)
+
+    def heading_alignment(self, state: RobotState) -> np.ndarray:
+        """Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) (wxyz) for the robot standing in ``state``."""
+        _, body_quat = self.kinematics.body_poses(state.quat_wxyz, state.joint_pos)
+        ref_anchor = self.motion.body_quat_w[0, self.anchor].double().numpy()
+        return quat_yaw(quat_mul(body_quat[self.anchor], quat_conj(ref_anchor)))
+
+    # ------------------------------------------------------------ per cycle
+    def tracking_state(self, state: RobotState, frame: int, action: np.ndarray) -> TrackingState:
+        """The one-env ``TrackingState`` of the robot in ``state`` against target ``frame``;
+        ``action`` is the (clipped) raw action applied during the last policy step."""
+        body_pos, body_quat = self.kinematics.body_poses(state.quat_wxyz, state.joint_pos)
+
+        def t(x) -> torch.Tensor:
+            return torch.as_tensor(np.asarray(x), dtype=torch.float32)[None]
+
+        K = len(self.spec.body_names)
+        unknown = torch.full((1, K, 3), float("nan"))
+        m = self.motion
+        return TrackingState(
+            body_names=self.spec.body_names, anchor=self.anchor,
+            end_effectors=torch.as_tensor([i for i, b in enumerate(self.spec.body_names) if b in robot.END_EFFECTORS]),
+            contact_body_names=(),
+            joint_pos=t(state.joint_pos), joint_vel=t(state.joint_vel), root_quat_w=t(state.quat_wxyz),
+            root_lin_vel_b=torch.full((1, 3), float("nan")), root_ang_vel_b=t(state.gyro_b),
+            body_pos_w=t(body_pos), body_quat_w=t(body_quat), body_lin_vel_w=unknown, body_ang_vel_w=unknown,
+            contact_force_n=torch.zeros(1, 0),
+            ref_joint_pos=m.joint_pos[frame][None], ref_joint_vel=m.joint_vel[frame][None],
+            ref_body_pos_w=self.ref_body_pos_w[frame][None], ref_body_quat_w=self.ref_body_quat_w[frame][None],
+            ref_body_lin_vel_w=self.ref_body_lin_vel_w[frame][None],
+            ref_body_ang_vel_w=self.ref_body_ang_vel_w[frame][None],
+            ref_body_pos_aligned_w=unknown, ref_body_quat_aligned_w=torch.full((1, K, 4), float("nan")),
+            action=t(action), last_action=torch.full((1, robot.NUM_JOINTS), float("nan")),
+            default_joint_pos=self._default,
+        )
+
+    def observation(self, s: TrackingState) -> np.ndarray:
+        """(D,) float32: the layout's terms in order, clipped to ±observation_clip."""
+        parts = [fn(s) for _, _, fn in self._terms]
+        clip = self.spec.observation_clip
+        return torch.cat(parts, dim=-1).clamp(-clip, clip)[0].numpy()
+
+    @staticmethod
+    def mpjpe_m(s: TrackingState) -> float:
+        """Root-relative MPJPE (m) over the tracked bodies (the evaluation's metric)."""
+        return float(mpjpe_root_relative(s)[0])
+
+    # ------------------------------------------------------------ start-up check
+    def _check_terms(self) -> None:
+        """Every term must have its layout dim and be finite on a standing robot: a term that
+        reads a field the robot does not measure (NaN here) cannot be deployed."""
+        stand = RobotState(joint_pos=self.spec.default_joint_pos.copy(), joint_vel=np.zeros(robot.NUM_JOINTS),
+                           quat_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), gyro_b=np.zeros(3), accel_b=np.zeros(3),
+                           tick_ms=0, mode_machine=0, remote_keys=0)
+        s = self.tracking_state(stand, min(1, self.num_frames - 1), np.zeros(robot.NUM_JOINTS))
+        for name, dim, fn in self._terms:
+            value = fn(s)
+            if value.shape[-1] != dim:
+                raise PolicySpecError(f"{self.spec.source}: observation term '{name}' has {value.shape[-1]} values "
+                                      f"here, the policy expects {dim}")
+            if not torch.isfinite(value).all():
+                raise PolicySpecError(f"{self.spec.source}: observation term '{name}' needs a quantity the G1's "
+                                      "low-level state does not give")

@@ -1,0 +1,382 @@
+"""``otr sim-robot``: a MuJoCo G1 that behaves like the real one on the low-level DDS interface.
+
+It subscribes to ``rt/lowcmd`` (``unitree_hg`` LowCmd_), drops commands whose CRC is wrong
+(counting them), and before every physics step applies the motor law of the G1's joint
+drivers, τ = τ_ff + kp(q* − q) + kd(dq* − dq), clipped to the effort limits (RL_SPEC §9). After
+every step it publishes ``rt/lowstate`` (LowState_ with CRC): joint q/dq/ddq/τ, the pelvis IMU
+(quaternion wxyz, gyroscope in the pelvis frame, accelerometer = specific force in the pelvis
+frame, rpy), and tick = simulated time in ms.
+
+Model: the training MJCF (``otr_gym/assets/g1/g1.xml``) on the ground plane, turned into a
+torque-driven robot at run time: its position actuators become motors (gain 1, no bias,
+ctrl = torque within ±effort), so the PD law runs here in Python exactly as the firmware runs
+it, at ``physics_hz`` (default 500 Hz, timestep 2 ms). Joint armature stays as trained.
+
+Before the first valid LowCmd the robot is frozen in its initial pose (a real G1 would hang in
+its gantry). With ``--gantry`` physics runs from the start, the joints damped as in the G1's
+debug mode until a command comes, and a virtual gantry holds the torso link (where the real
+gantry hooks in): a rope that only pulls up, a trolley spring in x/y and a harness torque that
+keeps the torso upright, 5 cm above the ground, until ``--gantry-release`` seconds after the
+first valid LowCmd (the controller's ramp happens hanging; lower it after the ramp, a robot
+landing mid-ramp falls); then it lowers the robot onto its feet over 1 s and lets go.
+
+The loop keeps real time on absolute deadlines; ``--stats`` writes what happened (commands
+accepted and dropped, real-time factor, step timing, whether the robot stayed upright).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from otr_gym import robot
+from otr_gym.io import save_npz, write_json
+from otr_gym.rotations import quat_from_yaw, quat_mul, quat_to_matrix
+
+from agents.deploy import crc
+from agents.deploy.safety import STARTUP_KD
+from agents.deploy.messages import (
+    MOTOR_MODE_ENABLE,
+    JointCommand,
+    LowState_,
+    MotorState_,
+    joint_command,
+)
+
+UPRIGHT_MIN_PELVIS_Z = 0.5  # m: below this (or tilted past UPRIGHT_MAX_TILT) the robot has fallen
+UPRIGHT_MAX_TILT = np.radians(60.0)
+MODE_MACHINE = 5  # the value Holosoma sends; real G1s report their own
+#: What the G1's joints do before any controller speaks (debug mode): damping only.
+DEBUG_MODE_DAMPING = JointCommand(q=np.zeros(robot.NUM_JOINTS), dq=np.zeros(robot.NUM_JOINTS),
+                                  kp=np.zeros(robot.NUM_JOINTS), kd=STARTUP_KD.copy(), tau=np.zeros(robot.NUM_JOINTS))
+
+
+@dataclass
+class SimRobotCfg:
+    physics_hz: float = 500.0
+    gantry: bool = False
+    gantry_lift_m: float = 0.05  # feet this far above the ground while hanging
+    gantry_release_s: float = 3.0  # after the first command
+    gantry_stiffness: float = 50000.0  # N/m: a rope, ~7 mm of sag under the G1
+    gantry_damping: float = 2000.0  # N·s/m (about critical for the G1's mass)
+    harness_stiffness: float = 500.0  # N·m/rad: the harness keeps the torso upright while hanging
+    harness_damping: float = 50.0  # N·m·s/rad
+    yaw_rad: float = 0.0  # initial heading (the runner must align to it)
+
+
+def motorised_model(physics_hz: float) -> mujoco.MjModel:
+    """The G1 on the ground with its position actuators turned into torque motors."""
+    from otr_gym.scene import SceneSpec, build_scene
+
+    model = build_scene(SceneSpec(ground=True, visual=False)).model
+    names = [model.actuator(i).name for i in range(model.nu)]
+    joints = [model.joint(model.actuator_trnid[i, 0]).name for i in range(model.nu)]
+    if tuple(joints) != robot.JOINT_NAMES:
+        raise RuntimeError(f"{robot.G1_MJCF}: actuators {names} do not drive the joints in G1 order")
+    model.opt.timestep = 1.0 / physics_hz
+    model.actuator_gaintype[:] = mujoco.mjtGain.mjGAIN_FIXED
+    model.actuator_biastype[:] = mujoco.mjtBias.mjBIAS_NONE
+    model.actuator_gainprm[:] = 0.0
+    model.actuator_gainprm[:, 0] = 1.0
+    model.actuator_biasprm[:] = 0.0
+    model.actuator_ctrllimited[:] = 1
+    model.actuator_ctrlrange[:, 0], model.actuator_ctrlrange[:, 1] = -robot.EFFORT_LIMIT, robot.EFFORT_LIMIT
+    return model
+
+
+def pd_torque(cmd: JointCommand, q: np.ndarray, dq: np.ndarray) -> np.ndarray:
+    """τ = τ_ff + kp(q* − q) + kd(dq* − dq), clipped to ±effort (N·m)."""
+    tau = cmd.tau + cmd.kp * (cmd.q - q) + cmd.kd * (cmd.dq - dq)
+    return np.clip(tau, -robot.EFFORT_LIMIT, robot.EFFORT_LIMIT)
+
+
+def quat_to_rpy(q: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (rad) of q = Rz(yaw)·Ry(pitch)·Rx(roll) (the inverse of
+    ``otr_gym.rotations.quat_from_euler_xyz``)."""
+    m = quat_to_matrix(q)
+    return np.array([np.arctan2(m[2, 1], m[2, 2]), np.arcsin(np.clip(-m[2, 0], -1, 1)), np.arctan2(m[1, 0], m[0, 0])])
+
+
+class SimRobot:
+    """The physics and the message content, without the transport."""
+
+    def __init__(self, cfg: SimRobotCfg, initial_qpos: np.ndarray | None = None):
+        self.cfg = cfg
+        self.model = motorised_model(cfg.physics_hz)
+        self.data = mujoco.MjData(self.model)
+        qpos = robot.default_qpos() if initial_qpos is None else np.array(initial_qpos, dtype=np.float64)
+        qpos[3:7] = quat_mul(quat_from_yaw(np.float64(cfg.yaw_rad)), qpos[3:7])
+        if cfg.gantry:
+            qpos[2] += cfg.gantry_lift_m
+        self.data.qpos[: 7 + robot.NUM_JOINTS] = qpos
+        mujoco.mj_forward(self.model, self.data)
+        self._acc = self.model.sensor("imu_lin_acc").adr[0]
+        self._pelvis = self.model.body("pelvis").id
+        self._torso = self.model.body(robot.ANCHOR_BODY).id
+        self._gantry_anchor = self.data.xpos[self._torso].copy()
+        self.gantry_release_at_s: float | None = None  # sim time; set by release_gantry_in()
+        self.tau = np.zeros(robot.NUM_JOINTS)
+        self.msg = LowState_(mode_machine=MODE_MACHINE,
+                             motor_state=[MotorState_(mode=MOTOR_MODE_ENABLE) for _ in range(35)])
+
+    @property
+    def time_s(self) -> float:
+        return float(self.data.time)
+
+    def step(self, cmd: JointCommand | None) -> None:
+        """One physics step under ``cmd`` (None: zero torque)."""
+        d = self.data
+        q, dq = d.qpos[7 : 7 + robot.NUM_JOINTS], d.qvel[6 : 6 + robot.NUM_JOINTS]
+        self.tau = np.zeros(robot.NUM_JOINTS) if cmd is None else pd_torque(cmd, q, dq)
+        d.ctrl[:] = self.tau
+        d.xfrc_applied[self._torso] = self._gantry_wrench() if self.cfg.gantry else 0.0
+        mujoco.mj_step(self.model, d)
+
+    def release_gantry_in(self, seconds: float) -> None:
+        """Start lowering the gantry ``seconds`` of simulated time from now (once)."""
+        if self.gantry_release_at_s is None:
+            self.gantry_release_at_s = self.time_s + seconds
+
+    def _gantry_wrench(self) -> np.ndarray:
+        """(6,) force and torque on the torso (world): trolley spring in x/y, a rope in z that
+        only pulls, and a harness torque that keeps the torso upright; lowered after the
+        release time, the harness fading out as it goes down."""
+        c = self.cfg
+        if self.gantry_release_at_s is None:
+            lowering = 0.0
+        else:
+            lowering = np.clip((self.time_s - self.gantry_release_at_s) / 1.0, 0.0, 1.0)
+        if lowering >= 1.0:
+            return np.zeros(6)
+        anchor = self._gantry_anchor - np.array([0.0, 0.0, (c.gantry_lift_m + 0.05) * lowering])
+        d = self.data
+        velocity = np.zeros(6)  # [angular, linear] of the torso frame, world axes
+        mujoco.mj_objectVelocity(self.model, d, mujoco.mjtObj.mjOBJ_BODY, self._torso, velocity, 0)
+        p, w, v = d.xpos[self._torso], velocity[:3], velocity[3:]
+        f = c.gantry_stiffness * (anchor - p) - c.gantry_damping * v
+        f[2] = max(f[2], 0.0)
+        z_body = d.xmat[self._torso].reshape(3, 3)[:, 2]
+        upright = np.cross(z_body, [0.0, 0.0, 1.0])  # axis·sin(tilt) that turns the torso upright
+        w_tilt = np.array([w[0], w[1], 0.0])  # yaw free: damping the light torso's yaw explicitly is unstable
+        torque = (1.0 - lowering) * (c.harness_stiffness * upright - c.harness_damping * w_tilt)
+        return np.concatenate([f, torque])
+
+    def pelvis_height(self) -> float:
+        return float(self.data.xpos[self._pelvis, 2])
+
+    def torso_tilt(self) -> float:
+        return float(np.arccos(np.clip(self.data.xmat[self._torso, 8], -1.0, 1.0)))
+
+    def low_state(self) -> LowState_:
+        """The current state as a LowState_ with its CRC (one message object, updated in place)."""
+        d, msg = self.data, self.msg
+        q, dq = d.qpos[7 : 7 + robot.NUM_JOINTS], d.qvel[6 : 6 + robot.NUM_JOINTS]
+        ddq = d.qacc[6 : 6 + robot.NUM_JOINTS]
+        for j, slot in enumerate(robot.MOTOR_INDEX):
+            m = msg.motor_state[slot]
+            m.q, m.dq, m.ddq, m.tau_est = float(q[j]), float(dq[j]), float(ddq[j]), float(self.tau[j])
+        quat = d.qpos[3:7]
+        imu = msg.imu_state
+        imu.quaternion = quat.tolist()
+        # the free joint's angular velocity is in the pelvis frame (the IMU site's orientation);
+        # the gyro sensor would lag one step (sensors are evaluated before integration)
+        imu.gyroscope = d.qvel[3:6].tolist()
+        imu.accelerometer = d.sensordata[self._acc : self._acc + 3].tolist()
+        imu.rpy = quat_to_rpy(quat).tolist()
+        msg.tick = int(round(d.time * 1000.0)) & 0xFFFFFFFF
+        return crc.with_crc(msg)
+
+
+# ------------------------------------------------------------------ the DDS bridge
+
+
+@dataclass
+class BridgeStats:
+    accepted: int = 0
+    dropped_bad_crc: int = 0
+    published: int = 0
+    steps: int = 0
+    resyncs: int = 0  # times the loop fell > 100 ms behind and gave up catching up
+    first_command_wall_s: float | None = None
+    last_command_wall_s: float | None = None
+    first_damping_wall_s: float | None = None  # first accepted command with kp = 0 everywhere
+
+
+class Bridge:
+    """``SimRobot`` on DDS: runs until ``duration_s`` (wall) or a signal."""
+
+    def __init__(self, sim: SimRobot, domain_id: int, interface: str | None, mute_after_s: float | None = None,
+                 idle_exit_s: float | None = None):
+        from agents.deploy.dds import G1Domain
+
+        self.sim = sim
+        self.dds = G1Domain(domain_id, interface)
+        self.writer = self.dds.writer(self.dds.lowstate_topic)
+        self.reader = self.dds.latest_reader(self.dds.lowcmd_topic)
+        self.mute_after_s, self.idle_exit_s = mute_after_s, idle_exit_s
+        self.stats = BridgeStats()
+        self.command: JointCommand | None = None
+        self._stop = False
+        self.trace: dict[str, list] = {"wall_s": [], "sim_s": [], "qpos": [], "kp_mean": []}
+        self.step_ns: list[int] = []
+        self.lateness_ns: list[int] = []
+        self.min_pelvis_z = sim.pelvis_height()
+        self.max_tilt = sim.torso_tilt()
+
+    def stop(self, *_) -> None:
+        self._stop = True
+
+    def _poll_command(self, wall_s: float) -> None:
+        from agents.deploy.dds import take_latest
+
+        msg = take_latest(self.reader)
+        if msg is None:
+            return
+        if not crc.crc_ok(msg):
+            self.stats.dropped_bad_crc += 1
+            return
+        self.command = joint_command(msg)
+        self.sim.release_gantry_in(self.sim.cfg.gantry_release_s)
+        self.stats.accepted += 1
+        self.stats.first_command_wall_s = self.stats.first_command_wall_s or wall_s
+        self.stats.last_command_wall_s = wall_s
+        if self.stats.first_damping_wall_s is None and not self.command.kp.any():
+            self.stats.first_damping_wall_s = wall_s
+
+    def run(self, duration_s: float | None = None) -> BridgeStats:
+        sim = self.sim
+        dt_ns = int(round(1e9 / sim.cfg.physics_hz))
+        trace_every = max(1, int(round(sim.cfg.physics_hz / 50.0)))
+        t0 = time.perf_counter_ns()
+        deadline = t0
+        while not self._stop:
+            now = time.perf_counter_ns()
+            if now < deadline:
+                time.sleep((deadline - now) * 1e-9)
+                now = time.perf_counter_ns()
+            self.lateness_ns.append(now - deadline)
+            wall_s = (now - t0) * 1e-9
+            if duration_s is not None and wall_s >= duration_s:
+                break
+            first, last = self.stats.first_command_wall_s, self.stats.last_command_wall_s
+            if self.idle_exit_s is not None and last is not None and wall_s - last >= self.idle_exit_s:
+                break
+            self._poll_command(wall_s)
+            if self.command is not None or sim.cfg.gantry:
+                sim.step(self.command if self.command is not None else DEBUG_MODE_DAMPING)
+                self.stats.steps += 1
+            if self.mute_after_s is None or first is None or wall_s - first < self.mute_after_s:
+                self.writer.write(sim.low_state())
+                self.stats.published += 1
+            if self.stats.first_damping_wall_s is None:  # a damped robot is meant to sink
+                self.min_pelvis_z = min(self.min_pelvis_z, sim.pelvis_height())
+                self.max_tilt = max(self.max_tilt, sim.torso_tilt())
+            if self.stats.steps % trace_every == 0:
+                self.trace["wall_s"].append(wall_s)
+                self.trace["sim_s"].append(sim.time_s)
+                self.trace["qpos"].append(sim.data.qpos[: 7 + robot.NUM_JOINTS].copy())
+                self.trace["kp_mean"].append(float(self.command.kp.mean()) if self.command is not None else np.nan)
+            self.step_ns.append(time.perf_counter_ns() - now)
+            deadline += dt_ns
+            behind = time.perf_counter_ns() - deadline
+            if behind > 100_000_000:
+                deadline += (behind // dt_ns + 1) * dt_ns
+                self.stats.resyncs += 1
+        self.wall_s = (time.perf_counter_ns() - t0) * 1e-9
+        return self.stats
+
+    def summary(self) -> dict:
+        step = np.array(self.step_ns) * 1e-6
+        late = np.array(self.lateness_ns) * 1e-6
+        s = self.stats
+        sim_s = self.sim.time_s
+        stepping_wall = (self.wall_s - (s.first_command_wall_s or 0.0)) if not self.sim.cfg.gantry else self.wall_s
+        return {
+            "physics_hz": self.sim.cfg.physics_hz,
+            "wall_s": self.wall_s, "sim_s": sim_s,
+            "realtime_factor": sim_s / stepping_wall if stepping_wall > 0 else float("nan"),
+            "steps": s.steps, "published": s.published, "accepted": s.accepted, "dropped_bad_crc": s.dropped_bad_crc,
+            "resyncs": s.resyncs,
+            "step_ms": {"p50": float(np.percentile(step, 50)), "p99": float(np.percentile(step, 99)),
+                        "max": float(step.max())} if step.size else {},
+            "lateness_ms": {"p50": float(np.percentile(late, 50)), "p99": float(np.percentile(late, 99)),
+                            "max": float(late.max())} if late.size else {},
+            "first_command_wall_s": s.first_command_wall_s, "last_command_wall_s": s.last_command_wall_s,
+            "first_damping_wall_s": s.first_damping_wall_s,
+            # until the first damping command (a damped robot sinks by design)
+            "min_pelvis_z_m": self.min_pelvis_z, "max_torso_tilt_rad": self.max_tilt,
+            "upright": bool(self.min_pelvis_z > UPRIGHT_MIN_PELVIS_Z and self.max_tilt < UPRIGHT_MAX_TILT),
+            "last_command_kp_mean": float(self.command.kp.mean()) if self.command is not None else None,
+        }
+
+
+def initial_pose(reference: str | None) -> np.ndarray | None:
+    """qpos of the reference's first frame (root and joints), or None for the default pose."""
+    if reference is None:
+        return None
+    from otr_gym.reference import Reference
+
+    ref = Reference.load(reference)
+    return np.concatenate([ref.root_pos_w[0], ref.root_quat_w[0], ref.dof_pos[0]])
+
+
+def configure_parser(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--interface", default="lo", help="network interface for DDS (default lo: sim2sim on one machine)")
+    p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0)")
+    p.add_argument("--reference", default=None, help="start on this reference's first frame (default: default pose)")
+    p.add_argument("--gantry", action="store_true", help="hang the robot in a virtual gantry until --gantry-release")
+    p.add_argument("--gantry-release", type=float, default=SimRobotCfg.gantry_release_s,
+                   help="seconds after the first LowCmd before the gantry lowers the robot onto its feet "
+                        "(over 1 s) and lets go")
+    p.add_argument("--physics-hz", type=float, default=SimRobotCfg.physics_hz, help="physics and LowState rate (Hz)")
+    p.add_argument("--yaw", type=float, default=0.0, help="initial heading (degrees)")
+    p.add_argument("--duration", type=float, default=None, help="exit after this many seconds (default: until Ctrl-C)")
+    p.add_argument("--idle-exit", type=float, default=None,
+                   help="exit when no LowCmd has come for this many seconds (after the first one)")
+    p.add_argument("--mute-after", type=float, default=None,
+                   help="stop publishing LowState this many seconds after the first LowCmd, physics going on "
+                        "(tests the runner's stale-state damping)")
+    p.add_argument("--rt-priority", type=int, default=0,
+                   help="run the physics loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling)")
+    p.add_argument("--stats", type=Path, default=None, help="write a JSON summary here at exit")
+    p.add_argument("--trace", type=Path, default=None, help="write the 50 Hz ground truth (qpos, gains) .npz here")
+
+
+def main(args: argparse.Namespace) -> int:
+    from agents.deploy.dds import TransportError
+
+    if args.physics_hz < 500.0:
+        print(f"otr sim-robot: --physics-hz {args.physics_hz:g} is below the 500 Hz the G1's joint loop needs",
+              file=sys.stderr)
+        return 2
+    try:
+        sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
+                                   yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference))
+        bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after, args.idle_exit)
+        if args.rt_priority:
+            from agents.deploy.runner import set_realtime_priority
+
+            set_realtime_priority(args.rt_priority)
+    except (TransportError, FileNotFoundError, ValueError, PermissionError) as exc:
+        print(f"otr sim-robot: {exc}", file=sys.stderr)
+        return 2
+    signal.signal(signal.SIGTERM, bridge.stop)
+    signal.signal(signal.SIGINT, bridge.stop)
+    print(f"sim-robot: G1 on domain {args.domain_id}, interface {args.interface}, {args.physics_hz:g} Hz physics"
+          f"{', gantry' if args.gantry else ', frozen until the first LowCmd'}", flush=True)
+    bridge.run(args.duration)
+    summary = bridge.summary()
+    if args.stats:
+        write_json(args.stats, summary)
+    if args.trace:
+        save_npz(args.trace, {k: np.asarray(v) for k, v in bridge.trace.items()})
+    print(json.dumps({k: summary[k] for k in ("realtime_factor", "accepted", "dropped_bad_crc", "upright")}))
+    return 0

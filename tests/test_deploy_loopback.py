@@ -1,0 +1,167 @@
+"""End to end on real CycloneDDS over the loopback interface: ``otr sim-robot`` and
+``otr deploy`` as two processes, exactly as a user runs sim2sim (no transport mocks)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+
+from agents.deploy import crc
+from agents.deploy.log import DeployLog
+from agents.deploy.messages import JointCommand, low_cmd
+from agents.deploy.reference_policy import training_metadata
+from agents.deploy.safety import STARTUP_KD, STARTUP_KP, Stage
+from agents.procedural import SwaySpec, sway_reference
+from otr_gym import cli, robot
+from tests.deploy_support import domain_id, feedback_policy, finish, nan_policy, otr
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture(scope="module")
+def sway(tmp_path_factory):
+    return sway_reference(SwaySpec(duration_s=16.0)).save(tmp_path_factory.mktemp("deploy") / "sway.npz")
+
+
+@pytest.fixture(scope="module")
+def meta(sway):
+    m = training_metadata(sway)
+    m["joint_stiffness"], m["joint_damping"] = STARTUP_KP.tolist(), STARTUP_KD.tolist()  # open loop needs them
+    return m
+
+
+def sim2sim(tmp, policy, reference, domain, sim_args=(), deploy_args=(), sim_s=20.0):
+    """Run the sim robot and the runner side by side; (runner rc, output, log, sim stats). The
+    sim robot exits 1 s after the runner's last LowCmd (``sim_s`` is only an upper bound)."""
+    stats, log = tmp / f"sim_{domain}.json", tmp / f"run_{domain}.npz"
+    sim = otr("sim-robot", "--interface", "lo", "--domain-id", str(domain), "--reference", str(reference),
+              "--duration", str(sim_s), "--idle-exit", "1", "--stats", str(stats), *sim_args)
+    run = otr("deploy", "--policy", str(policy), "--reference", str(reference), "--interface", "lo",
+              "--domain-id", str(domain), "--auto-start", "--ramp", "0.5", "--damp-s", "0.5", "--log", str(log),
+              *deploy_args)
+    rc, out = finish(run, sim_s + 30)
+    sim_rc, sim_out = finish(sim, sim_s + 30)
+    assert sim_rc == 0, sim_out
+    return rc, out, DeployLog.load(log), json.loads(stats.read_text())
+
+
+@pytest.fixture(scope="module")
+def tracked_run(tmp_path_factory, meta, sway):
+    tmp = tmp_path_factory.mktemp("sim2sim")
+    policy = feedback_policy(meta, tmp / "feedback.onnx")
+    return (policy,) + sim2sim(tmp, policy, sway, domain_id(0), deploy_args=("--duration", "10"), sim_s=60.0)
+
+
+def test_runner_and_sim_robot_keep_the_g1_upright_for_10_s_of_tracking(tracked_run):
+    _, rc, out, log, stats = tracked_run
+    assert rc == 0, out
+    stage = log.arrays["stage"]
+    assert (stage == Stage.TRACK).sum() >= 500  # 10 s at 50 Hz
+    assert log.transitions()[-1][1:] == ("TRACK", "DAMP", "duration")
+    assert stats["upright"], stats  # pelvis above 0.5 m and tilt below 60° until damping
+    assert stats["min_pelvis_z_m"] > 0.6
+    assert stats["accepted"] >= 500 and stats["dropped_bad_crc"] == 0
+    mpjpe = log.arrays["mpjpe_m"][stage == Stage.TRACK]
+    assert np.nanmean(mpjpe) < 0.04, np.nanmean(mpjpe)  # open loop + small feedback: centimetres
+
+
+def test_a_replayed_log_reproduces_the_recorded_actions_to_1e_6(tracked_run, capsys):
+    policy, _, _, log, _ = tracked_run
+    assert cli.main(["deploy", "--replay", str(log.path), "--policy", str(policy)]) == 0
+    assert "reproduced" in capsys.readouterr().out
+    from agents.deploy.runner import replay
+
+    r = replay(log.path)
+    assert r["tracking_cycles"] >= 500
+    assert r["max_action_diff"] <= 1e-6 and r["stages_equal"] and r["nan_pattern_equal"]
+    # the feedback term makes actions depend on the state: a replay with different states would differ
+    track = log.arrays["stage"] == Stage.TRACK
+    assert np.ptp(log.arrays["observation"][track, 67:96], axis=0).max() > 1e-3
+
+
+def test_inspect_summarises_timing_stages_and_tracking_error(tracked_run, capsys):
+    _, _, _, log, _ = tracked_run
+    assert cli.main(["inspect", str(log.path)]) == 0
+    text = capsys.readouterr().out
+    for needle in ("cycle period", "missed deadlines", "TRACK → DAMP (duration)", "MPJPE"):
+        assert needle in text, text
+
+
+def test_bridge_stops_publishing_then_the_runner_damps_within_3_cycles(tmp_path, meta, sway):
+    policy = feedback_policy(meta, tmp_path / "p.onnx")
+    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(1), sim_args=("--mute-after", "2"), sim_s=60.0)
+    assert rc == 1, out  # a fault ended the run
+    (damp,) = [t for t in log.transitions() if t[2] == "DAMP"]
+    assert damp[1:] == ("TRACK", "DAMP", "stale_state")
+    a = log.arrays
+    damp_cycle = int(np.argmax(a["stage"] == Stage.DAMP))
+    last_fresh = int(np.nonzero(a["fresh"][:damp_cycle])[0].max())
+    assert damp_cycle - last_fresh <= 3
+    assert (a["command"][damp_cycle:, 2] == 0).all()  # kp = 0 from then on: damping
+    assert stats["first_damping_wall_s"] is not None and stats["last_command_kp_mean"] == 0.0
+
+
+def test_a_nan_action_sends_the_robot_to_damping(tmp_path, meta, sway):
+    policy = nan_policy(meta, tmp_path / "nan.onnx")
+    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(2), sim_s=60.0)
+    assert rc == 1, out
+    a = log.arrays
+    first_track = int(np.argmax(a["stage"] == Stage.TRACK)) if (a["stage"] == Stage.TRACK).any() else None
+    (damp,) = [t for t in log.transitions() if t[2] == "DAMP"]
+    assert damp[1:] == ("TRACK", "DAMP", "nan_action")
+    assert first_track is None  # damped in the very cycle tracking began, no NaN command went out
+    assert np.isfinite(a["command"][np.isfinite(a["command"][:, 0, 0])]).all()
+    assert stats["first_damping_wall_s"] is not None and stats["upright"]
+
+
+def test_the_bridge_drops_lowcmds_with_a_wrong_crc_and_counts_them(tmp_path):
+    from agents.deploy.dds import G1Domain, take_latest
+
+    domain, stats_path = domain_id(3), tmp_path / "sim.json"
+    sim = otr("sim-robot", "--interface", "lo", "--domain-id", str(domain), "--duration", "5",
+              "--stats", str(stats_path))
+    dds = G1Domain(domain, "lo")
+    reader, writer = dds.latest_reader(dds.lowstate_topic), dds.writer(dds.lowcmd_topic)
+    deadline = time.monotonic() + 20
+    while take_latest(reader) is None:  # discovery done: the robot's LowState reaches us
+        assert time.monotonic() < deadline, "no LowState from the sim robot"
+        time.sleep(0.01)
+    time.sleep(0.2)  # and our writer is matched by its reader
+    squat = robot.DEFAULT_JOINT_POS + 0.5
+    cmd = JointCommand(q=squat, dq=np.zeros(29), kp=STARTUP_KP, kd=STARTUP_KD, tau=np.zeros(29))
+    for _ in range(20):
+        msg = crc.with_crc(low_cmd(cmd, 5))
+        msg.crc ^= 0x1  # one bit off
+        writer.write(msg)
+        time.sleep(0.02)
+    time.sleep(0.2)
+    for _ in range(5):  # the same command with its CRC right is applied
+        writer.write(crc.with_crc(low_cmd(cmd, 5)))
+        time.sleep(0.02)
+    rc, out = finish(sim, 30)
+    assert rc == 0, out
+    stats = json.loads(stats_path.read_text())
+    assert stats["dropped_bad_crc"] == 20, stats
+    # only the five with a right CRC were accepted, and only they started the physics
+    assert stats["accepted"] == 5 and stats["steps"] > 0
+
+
+def test_with_the_gantry_the_ramp_happens_hanging_and_the_robot_is_lowered_onto_its_feet(tmp_path, meta, sway):
+    policy = feedback_policy(meta, tmp_path / "p.onnx")
+    trace = tmp_path / "trace.npz"
+    rc, out, log, stats = sim2sim(tmp_path, policy, sway, domain_id(4),
+                                  sim_args=("--gantry", "--gantry-release", "2.5", "--trace", str(trace)),
+                                  deploy_args=("--duration", "3", "--ramp", "2"), sim_s=60.0)
+    assert rc == 0, out
+    assert (log.arrays["stage"] == Stage.RAMP).sum() >= 95 and (log.arrays["stage"] == Stage.TRACK).sum() >= 145
+    t = np.load(trace)
+    since_command = t["wall_s"] - stats["first_command_wall_s"]
+    pelvis_z = t["qpos"][:, 2]
+    hanging = pelvis_z[(since_command > 0) & (since_command < 2.5)]  # the ramp, in the gantry
+    standing = pelvis_z[(since_command > 3.6) & (since_command < 5.0)]  # lowered, tracking
+    assert hanging.min() > 0.79  # default stance 0.76 m + the gantry's 5 cm, less its sag
+    assert 0.70 < standing.min() and standing.max() < 0.78
+    assert stats["upright"], stats

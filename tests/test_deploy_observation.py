@@ -1,0 +1,75 @@
+"""The runner's observation is the training env's, rebuilt from the ONNX metadata and what a
+LowState carries (joints, IMU), not from the simulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from agents.deploy.messages import RobotState
+from agents.deploy.observation import ObservationBuilder, PolicySpec, PolicySpecError
+from agents.deploy.reference_policy import training_metadata, write_reference_policy
+from envs.tracking import make_task
+from otr_gym import robot
+
+
+@pytest.fixture(scope="module")
+def meta(walking_reference):
+    return training_metadata(walking_reference)
+
+
+def test_observation_equals_the_training_envs_from_the_lowstate_alone(walking_reference, meta):
+    task = make_task(walking_reference, 1, "mujoco", "cpu", evaluation=True)
+    task.reset()
+    builder = ObservationBuilder(PolicySpec.from_metadata(meta, "meta"), walking_reference)
+    rng = np.random.default_rng(0)
+    obs = None
+    for step in range(12):
+        if step:
+            obs = task.step(torch.as_tensor(rng.normal(0, 0.3, (1, 29)), dtype=torch.float32))[0]
+        else:
+            obs = task.observations(task.state)
+        qpos, qvel = task.backend.qpos[0].numpy(), task.backend.qvel[0].numpy()
+        lowstate = RobotState(joint_pos=qpos[7:], joint_vel=qvel[6:], quat_wxyz=qpos[3:7], gyro_b=qvel[3:6],
+                              accel_b=np.zeros(3), tick_ms=0, mode_machine=5, remote_keys=0)
+        frame = int(task.command.frame[0])
+        s = builder.tracking_state(lowstate, frame, task.action[0].numpy())
+        np.testing.assert_allclose(builder.observation(s), obs["policy"][0].numpy(), atol=2e-5,
+                                   err_msg=f"step {step}, frame {frame}")
+    assert frame == 12  # the env's target frame = the runner's (start 0 + 1 + steps)
+
+
+def test_terms_the_robot_cannot_measure_are_refused_by_name(meta):
+    bad = dict(meta, observation_layout=[*meta["observation_layout"], {"name": "anchor_pos_b", "dim": 3, "start": 154}])
+    with pytest.raises(PolicySpecError, match="anchor_pos_b.*world position"):
+        PolicySpec.from_metadata(bad, "p.onnx")
+
+
+def test_metadata_with_another_joint_order_or_missing_fields_is_refused(meta):
+    with pytest.raises(PolicySpecError, match="joint order"):
+        PolicySpec.from_metadata(dict(meta, joint_names=list(reversed(meta["joint_names"]))), "p.onnx")
+    without = {k: v for k, v in meta.items() if k != "joint_stiffness"}
+    with pytest.raises(PolicySpecError, match="p.onnx: metadata lacks \\['joint_stiffness'\\]"):
+        PolicySpec.from_metadata(without, "p.onnx")
+    with pytest.raises(PolicySpecError, match="default_joint_pos"):
+        PolicySpec.from_metadata(dict(meta, default_joint_pos=[0.0] * 28), "p.onnx")
+
+
+def test_a_missing_policy_file_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.onnx"):
+        PolicySpec.from_onnx(tmp_path / "nope.onnx")
+
+
+def test_reference_policy_outputs_the_reference_joint_targets(tmp_path, walking_reference):
+    path = write_reference_policy(tmp_path / "ref.onnx", walking_reference)
+    spec = PolicySpec.from_onnx(path)
+    np.testing.assert_array_equal(spec.kp[:6], [350, 200, 200, 300, 300, 150])  # start-up gains, documented
+    builder = ObservationBuilder(spec, walking_reference)
+    stand = RobotState(robot.DEFAULT_JOINT_POS.copy(), np.zeros(29), np.array([1.0, 0, 0, 0]), np.zeros(3),
+                       np.zeros(3), 0, 5, 0)
+    obs = builder.observation(builder.tracking_state(stand, 40, np.zeros(29)))
+    action = ort.InferenceSession(str(path)).run(["actions"], {"obs": obs[None]})[0][0]
+    q_ref = builder.motion.joint_pos[40].numpy()
+    np.testing.assert_allclose(spec.default_joint_pos + spec.action_scale * action, q_ref, atol=1e-5)

@@ -1,0 +1,66 @@
+"""The sim robot's physics and message content, without the transport."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agents.deploy import crc
+from agents.deploy.messages import JointCommand, robot_state
+from agents.deploy.safety import STARTUP_KD, STARTUP_KP
+from agents.deploy.sim_robot import SimRobot, SimRobotCfg, pd_torque, quat_to_rpy
+from otr_gym import robot
+from otr_gym.rotations import quat_from_euler_xyz
+
+
+def hold(q=None) -> JointCommand:
+    return JointCommand(q=robot.DEFAULT_JOINT_POS.copy() if q is None else q, dq=np.zeros(29), kp=STARTUP_KP,
+                        kd=STARTUP_KD, tau=np.zeros(29))
+
+
+def test_the_motor_law_is_pd_plus_feedforward_clipped_to_effort():
+    cmd = JointCommand(q=np.full(29, 1.0), dq=np.full(29, 0.5), kp=np.full(29, 10.0), kd=np.full(29, 2.0),
+                       tau=np.full(29, 0.25))
+    tau = pd_torque(cmd, np.full(29, 0.9), np.zeros(29))
+    np.testing.assert_allclose(tau, 0.25 + 10 * 0.1 + 2 * 0.5)
+    big = pd_torque(JointCommand(cmd.q * 100, cmd.dq, cmd.kp, cmd.kd, cmd.tau), np.zeros(29), np.zeros(29))
+    np.testing.assert_allclose(big, robot.EFFORT_LIMIT)
+
+
+def test_lowstate_carries_joints_imu_wxyz_body_gyro_and_specific_force():
+    sim = SimRobot(SimRobotCfg(yaw_rad=0.3))
+    for _ in range(250):  # 0.5 s standing under the start-up gains
+        sim.step(hold())
+    msg = sim.low_state()
+    assert crc.crc_ok(msg) and msg.tick == 500
+    s = robot_state(msg)
+    d = sim.data
+    np.testing.assert_allclose(s.joint_pos, d.qpos[7:36], atol=1e-6)
+    np.testing.assert_allclose(s.quat_wxyz, d.qpos[3:7], atol=1e-6)
+    np.testing.assert_allclose(s.gyro_b, d.qvel[3:6], atol=1e-5)  # free-joint angular velocity is body frame
+    assert abs(s.accel_b[2] - 9.81) < 0.5  # at rest the accelerometer reads +g along the pelvis z
+    rpy = np.array(msg.imu_state.rpy)
+    assert abs(rpy[2] - 0.3) < 0.02
+    np.testing.assert_allclose(quat_to_rpy(quat_from_euler_xyz(0.1, -0.2, 0.3)), [0.1, -0.2, 0.3], atol=1e-9)
+
+
+def test_startup_gains_hold_the_default_pose_and_zero_torque_falls():
+    held, limp = SimRobot(SimRobotCfg()), SimRobot(SimRobotCfg())
+    for _ in range(1000):  # 2 s
+        held.step(hold())
+        limp.step(None)
+    assert held.pelvis_height() > 0.7 and held.torso_tilt() < 0.1
+    assert limp.pelvis_height() < 0.5
+
+
+def test_the_gantry_holds_a_limp_robot_then_lowers_it():
+    sim = SimRobot(SimRobotCfg(gantry=True))
+    for _ in range(1000):  # 2 s hanging, no torque, no command yet: it keeps hanging
+        sim.step(None)
+    assert sim.pelvis_height() > 0.6
+    sim.release_gantry_in(0.5)
+    for _ in range(200):
+        sim.step(None)
+    assert sim.pelvis_height() > 0.6
+    for _ in range(1000):  # lowered over 1 s, then let go with no torque: it sinks
+        sim.step(None)
+    assert sim.pelvis_height() < 0.5
