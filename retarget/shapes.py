@@ -103,6 +103,11 @@ class ShapeSpec:
         return is_mesh_file(self.shape)
 
     @property
+    def is_native(self) -> bool:
+        """The captured object at its own size: nothing is substituted."""
+        return self.shape == ORIGINAL and self.scale == (1.0, 1.0, 1.0)
+
+    @property
     def uniform(self) -> float | None:
         """The uniform factor, or None when the axes differ."""
         return self.scale[0] if self.scale[0] == self.scale[1] == self.scale[2] else None
@@ -206,6 +211,8 @@ def resize_in_object_frame(mesh: TriMesh, object_mesh: TriMesh, quat_w: np.ndarr
                            name: str | None = None) -> TriMesh:
     """``mesh`` (already in the demonstrated object's frame) resized about its bounding-box
     centre by ``scale`` given along the canonical axes (x: longer horizontal side, z: up)."""
+    if tuple(scale) == (1.0, 1.0, 1.0):
+        return as_trimesh(mesh.vertices, mesh.faces, name or mesh.name)  # bit for bit: the captured object itself
     rot = canonical_to_object(object_mesh, quat_w)
     centre = mesh.bounds.mean(axis=0)
     stretch = rot @ np.diag(np.asarray(scale, np.float64)) @ rot.T

@@ -189,7 +189,10 @@ class Substitution:
         q = self.demonstrated.query(x_c[near], exact_witness=True)
         keep = q.d < band
         near = near[keep]
-        d, w_demo, n_demo = q.d[keep], q.w[keep], q.n[keep]
+        d, n_demo = q.d[keep], q.n[keep]
+        # the grid's witness, up to ~1 mm off the captured surface, put on it: an identical
+        # substitute then gets ŵ and n̂ back unchanged
+        w_demo = self.to_demonstrated.project(q.w[keep])
         w = self.to_substitute(w_demo)
         n = _minimal_rotation_apply(_unit_normals(self.demonstrated, w_demo), _unit_normals(self.substitute, w), n_demo)
         return near, d, w, n
