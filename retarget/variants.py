@@ -15,13 +15,14 @@ Outputs in DIR, each written atomically:
 * ``<demo>__<variant>.npz``: the reference (it carries the substitute's mesh);
 * ``<demo>__<variant>.json``: its record (metrics, checks, timings, warnings);
 * ``variants.json`` (every record), ``variants.md`` (the Table-IV layout: dd, R, P, J, drift per
-  variant, with penetration, hand hold and time), ``recall_precision_vs_scale.png`` (Fig. 5).
+  variant, with the grip — the hands alone — recall and precision, penetration and time),
+  ``recall_precision_vs_scale.png`` (Fig. 5: grip recall and precision against the scale).
 
 The batch is the retarget batch (``retarget.pipeline.run_batch``): progress bar, ``--workers``
 processes, resumable (a variant whose record exists is skipped; one whose reference exists is
 only scored again), a failing variant is reported and the batch goes on (exit code 1). A
-variant whose hands reach the object in fewer than ``--min-recall`` of the demonstrated
-contacts (a substitute too big for the G1's reach) finishes with a warning and its recall.
+variant whose hands reach the object in fewer than ``--min-recall`` of the demonstrated grip
+samples (a substitute too big for the G1's reach) finishes with a warning and its recall.
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ import time
 import traceback
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+import numpy as np
 
 from otr_gym.io import atomic_path, write_json
 from retarget.pipeline import ConfigError, RetargetConfig, load_config, run_batch
@@ -56,8 +59,9 @@ TABLE_COLUMNS = (
     (("metrics", "object_precision"), "P", "%", 100.0, 0),
     (("metrics", "object_jaccard"), "J", "%", 100.0, 0),
     (("metrics", "drift_m"), "drift", "cm", 100.0, 1),
+    (("metrics", "grip_recall"), "grip R", "%", 100.0, 0),
+    (("metrics", "grip_precision"), "grip P", "%", 100.0, 0),
     (("checks", "penetration_m"), "pen", "mm", 1e3, 2),
-    (("checks", "hand_hold"), "hold", "%", 100.0, 0),
     (("timing", "wall_s"), "time", "s", 1.0, 0),
 )
 #: Extra column when the scene has object–object contacts (the box on the table).
@@ -112,6 +116,21 @@ def _variant_demo(job: VariantJob, cfg: SubstitutionConfig):
     return demo, substitute(demo, job.spec, job.object_name, cfg)
 
 
+def grip_scores(result) -> dict[str, float]:
+    """The paper's *grip* (Fig. 5): the object metrics restricted to the hand units (those
+    holding a wrist-yaw link, the G1's fixed hand) against the manipulated objects."""
+    from retarget.evaluation.contact import contact_scores
+
+    links = result.details["unit_links"]
+    hands = [k for k, u in enumerate(result.units) if any(lk.endswith("wrist_yaw_link") for lk in links[u])]
+    moving = [c for c, o in enumerate(result.details["objects"], start=1) if not o["static"]]
+    d_hat = result.d_hat_m[:, hands][:, :, moving]
+    d = result.d_m[:, hands][:, :, moving]
+    none = np.zeros(d.shape + (3,))
+    s = contact_scores(d_hat, none, d, none, result.eps_m)
+    return {"grip_dd_m": s.dd_m, "grip_recall": s.recall, "grip_precision": s.precision, "grip_jaccard": s.jaccard}
+
+
 def measure_variant(reference, demo) -> dict:
     """Protocol metrics of a variant's reference against the original demonstration, the
     solver-independent checks (penetration both ways on the robot's visual meshes, hand hold)
@@ -122,12 +141,13 @@ def measure_variant(reference, demo) -> dict:
     from retarget.verify import check_reference, object_in_robot_depth
 
     result = evaluate_sequence(reference, demo)
+    metrics = {**result.metrics, **grip_scores(result)}
     checks = check_reference(reference, resample_demonstration(demo, reference.fps)).as_dict()
     checks["object_in_robot_m"] = object_in_robot_depth(reference)
     checks["penetration_m"] = max(checks["object_penetration_mesh_m"], checks["ground_penetration_mesh_m"],
                                   checks["object_in_robot_m"])
     solver = reference.metadata.get("solver", {})
-    return json_safe({"metrics": result.metrics, "object_channels": result.details["object_channels"],
+    return json_safe({"metrics": metrics, "object_channels": result.details["object_channels"],
                       "object_pairs": result.details["object_pairs"], "checks": checks,
                       "timing": {k: solver.get(k) for k in ("setup_s", "solve_s", "ms_per_frame", "frames")}})
 
@@ -171,15 +191,15 @@ def run_variant(job: VariantJob, cfg: RetargetConfig, substitution: Substitution
                        "native": job.spec.is_native, "demonstration": str(job.demo), "reference": str(job.output),
                        "free": list(job.free)})
         record["timing"]["wall_s"] = retarget_s
-        recall = record["metrics"]["object_recall"]
+        grip = record["metrics"]["grip_recall"]
         warnings = []
-        if recall is None or recall < min_recall:
-            shown = "undefined" if recall is None else f"{100 * recall:.0f} %"
-            warnings.append(f"hands reach the {obj} in {shown} of the demonstrated contacts (below "
+        if grip is None or grip < min_recall:
+            shown = "undefined" if grip is None else f"{100 * grip:.0f} %"
+            warnings.append(f"the hands reach the {obj} in {shown} of the demonstrated grip (below "
                             f"{100 * min_recall:.0f} %): the substitute may be too big for the G1's reach")
         record["warnings"] = warnings
         write_json(job.record, record)
-        summary = (f"{job.output} (R {_pct(recall)}, P {_pct(record['metrics']['object_precision'])}, "
+        summary = (f"{job.output} (object R {_pct(record['metrics']['object_recall'])}, grip R {_pct(grip)}, "
                    f"penetration {1e3 * record['checks']['penetration_m']:.2f} mm, {retarget_s:.0f} s)")
         if warnings:
             return "warning", f"{job.spec.name}: {warnings[0]}; {summary}"
@@ -232,8 +252,9 @@ def format_variants_table(records: list[dict]) -> str:
 
 
 def plot_recall_precision(records: list[dict], path: str | Path, title: str = "") -> Path | None:
-    """The paper's Fig. 5: object recall and precision (%) against the uniform scale, one colour
-    per shape (solid recall, dashed precision). None when no record has a uniform scale."""
+    """The paper's Fig. 5: grip recall and precision (%, the hands against the object) against
+    the uniform scale, one colour per shape (solid recall, dashed precision). None when no
+    record has a uniform scale."""
     from retarget.evaluation.plots import _pyplot
 
     by_shape: dict[str, list[dict]] = {}
@@ -249,7 +270,7 @@ def plot_recall_precision(records: list[dict], path: str | Path, title: str = ""
         x = [r["uniform_scale"] for r in rows]
         colour = f"C{k % 10}"
         name = rows[0]["object"] if shape == ORIGINAL else Path(shape).stem
-        for key, style, what in (("object_recall", "-o", "recall"), ("object_precision", "--s", "precision")):
+        for key, style, what in (("grip_recall", "-o", "recall"), ("grip_precision", "--s", "precision")):
             y = [100 * v if v is not None else float("nan") for v in (r["metrics"].get(key) for r in rows)]
             ax.plot(x, y, style, color=colour, ms=4, label=f"{name} {what}")
     ax.set_xlabel("object scale (×)")
@@ -304,7 +325,8 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--keep-mesh-frame", action="store_true",
                    help="mesh files are already in the captured object's frame (no re-orientation or centring)")
     p.add_argument("--min-recall", type=float, default=0.5,
-                   help="warn when a variant's object recall is below this fraction (default: 0.5)")
+                   help="warn when a variant's grip recall (hands on the object) is below this fraction "
+                        "(default: 0.5)")
     p.add_argument("--fps", type=float, default=None, help="output and solve rate in Hz (default: 50)")
     p.add_argument("--config", type=Path, default=None, help="retarget YAML configuration (default: built-in)")
     p.add_argument("--overwrite", action="store_true", help="redo variants whose outputs already exist")

@@ -200,6 +200,10 @@ def test_the_box_rests_on_the_table_and_the_robot_never_touches_it(place, free_t
     table = result.details["object_channels"]["table"]
     assert table["n_h"] == 0 and table["n_r"] == 0  # no robot–table contact, as demonstrated
     assert result.details["object_channels"]["box"]["recall"] >= 0.9
+    from retarget.evaluation.report import format_object_notes
+
+    notes = format_object_notes([result.as_dict()])  # what `otr eval` prints under its table
+    assert "robot–table no contact in either" in notes and f"box–table R {100 * pair['recall']:.0f} %" in notes
     moved = np.linalg.norm(ref.objects[1].pos_w - place.objects[1].pos_w, axis=1).max()
     assert moved <= (0.02 if free_table else 0.0)
 
@@ -229,7 +233,7 @@ def test_variants_batch_reports_a_failure_goes_on_then_resumes(grasp_file, tmp_p
     real = retarget.pipeline.retarget_demonstration
 
     def fail_on_small_box(demo, cfg, progress=None):
-        if demo.source["substitution"]["scale"] == [0.8, 0.8, 0.8]:
+        if demo.source.get("substitution", {}).get("scale") == [0.8, 0.8, 0.8]:
             raise RuntimeError("solver exploded")
         return real(demo, cfg, progress)
 
@@ -249,6 +253,7 @@ def test_variants_batch_reports_a_failure_goes_on_then_resumes(grasp_file, tmp_p
     assert sorted(rows) == ["original_x0.80", "original_x1.00"]
     for r in rows.values():
         assert 0.0 <= r["metrics"]["object_recall"] <= 1.0 and r["timing"]["solve_s"] > 0
+        assert r["metrics"]["grip_recall"] >= 0.8  # the hands hold either box
         # the robot's visual-mesh vertices never enter the box (the solver's ε_col, checked exactly)
         assert r["checks"]["object_penetration_mesh_m"] <= EPS_COL and r["checks"]["ground_penetration_mesh_m"] <= EPS_COL
         assert r["checks"]["object_in_robot_m"] >= 0.0
@@ -278,5 +283,14 @@ def test_a_substitute_too_big_to_hold_finishes_with_a_warning_and_its_recall(gra
     status, message = run_variant(job, cfg, SubstitutionConfig(samples=500), min_recall=0.5)
     assert status == "warning" and "too big" in message
     record = json.loads(job.record.read_text())
-    assert record["metrics"]["object_recall"] < 0.5 and record["warnings"]
+    assert record["metrics"]["grip_recall"] < 0.5 and record["warnings"]
     assert job.output.is_file()
+
+
+def test_a_substituted_demonstration_refuses_to_be_saved_as_captured(tmp_path):
+    from retarget.demos import InvalidDemonstrationError
+
+    demo = clip("box_carry", 166, 168)
+    with pytest.raises(InvalidDemonstrationError, match=r"\['box'\].*substitutes"):
+        substitute(demo, ShapeSpec("ball")).save(tmp_path / "ball.npz")
+    assert not (tmp_path / "ball.npz").exists()
