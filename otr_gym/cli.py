@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("otr_gym.summary", "summarise a demonstration or reference file"),
     "retarget": ("retarget.pipeline", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
     "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
+    "variants": ("retarget.variants", "one demonstration, many references: substitute shapes and sizes (Table IV)"),
     "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),
     "evaluate": ("agents.evaluate", "success rate and MPJPE of a trained policy"),
     "export": ("agents.export", "export a policy to ONNX with metadata"),

@@ -124,6 +124,10 @@ class Demonstration:
     def save(self, path: str | Path) -> Path:
         """Validate, then write our ``.npz`` atomically (temporary file in the same folder + rename)."""
         self.validate()
+        swapped = [o.name for o in self.objects if getattr(o, "demonstrated_mesh", None) is not None]
+        if swapped:  # the file would claim the substitute was captured (retarget.substitute)
+            raise InvalidDemonstrationError(f"{path}: objects {swapped} of {self.name!r} are substitutes; save the "
+                                            "captured demonstration and substitute after loading it")
         return save_npz(path, _to_arrays(self))
 
     @classmethod

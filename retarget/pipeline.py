@@ -22,11 +22,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import multiprocessing
 import os
 import sys
 import time
 import traceback
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -103,7 +105,11 @@ def retarget_demonstration(demo, cfg: RetargetConfig = RetargetConfig(), progres
     """
     from otr_gym.reference import ContactAnnotations, ObjectTrack, Reference
     from otr_gym.robot import BODY_NAMES
-    from otr_gym.rotations import angular_velocity_from_quats, linear_velocity_from_positions, matrix_to_quat
+    from otr_gym.rotations import (
+        angular_velocity_from_quats,
+        linear_velocity_from_positions,
+        matrix_to_quat,
+    )
     from retarget.problem import build_problem, mode_scale, resample_demonstration
     from retarget.solver import solve_sequence
 
@@ -233,8 +239,6 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     try:
         cfg = load_config(args.config, mode=args.mode, fps=args.fps)
         jobs = collect_jobs(list(args.inputs), Path(args.out))
@@ -248,21 +252,9 @@ def main(args: argparse.Namespace) -> int:
     skipped = len(jobs) - len(todo)
     if skipped:
         print(f"{skipped} of {len(jobs)} outputs already exist: skipped (use --overwrite to redo them)")
-    failures: list[str] = []
-    bar = tqdm(total=len(todo), desc="retarget", unit="clip")
-    if args.workers == 1 or len(todo) <= 1:
-        for job in todo:
-            status, message = run_job(job, cfg, args.object, frame_bar=True)
-            _report(bar, status, message, failures)
-    else:
-        _one_thread_per_worker()
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=args.workers, mp_context=context) as pool:
-            futures = [pool.submit(run_job, job, cfg, args.object) for job in todo]
-            for fut in as_completed(futures):
-                status, message = fut.result()
-                _report(bar, status, message, failures)
-    bar.close()
+    results = run_batch(todo, functools.partial(run_job, cfg=cfg, object_mesh=args.object), args.workers,
+                        "retarget", "clip")
+    failures = [message for _, status, message in results if status == "failed"]
     done = len(todo) - len(failures)
     print(f"retargeted {done}, skipped {skipped}, failed {len(failures)} (of {len(jobs)})")
     for message in failures:
@@ -270,10 +262,40 @@ def main(args: argparse.Namespace) -> int:
     return 1 if failures else 0
 
 
-def _report(bar, status: str, message: str, failures: list[str]) -> None:
+def run_batch(jobs: list, run: Callable[..., tuple[str, str]], workers: int, desc: str,
+              unit: str) -> list[tuple[object, str, str]]:
+    """Run ``run(job, frame_bar=…) -> (status, message)`` over ``jobs`` behind a progress bar:
+    in this process with a per-job frame bar (one worker), else in ``workers`` spawned processes
+    (``run`` and the jobs must pickle). ``run`` never raises: status 'failed' is reported and the
+    batch goes on, 'warning' is reported as one, anything else as written. Returns
+    (job, status, message) in completion order."""
+    from tqdm import tqdm
+
+    results: list[tuple[object, str, str]] = []
+    bar = tqdm(total=len(jobs), desc=desc, unit=unit)
+    if workers == 1 or len(jobs) <= 1:
+        for job in jobs:
+            status, message = run(job, frame_bar=True)
+            _report(bar, status, message)
+            results.append((job, status, message))
+    else:
+        _one_thread_per_worker()
+        context = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+            futures = {pool.submit(run, job): job for job in jobs}
+            for fut in as_completed(futures):
+                status, message = fut.result()
+                _report(bar, status, message)
+                results.append((futures[fut], status, message))
+    bar.close()
+    return results
+
+
+def _report(bar, status: str, message: str) -> None:
     if status == "failed":
-        failures.append(message)
         bar.write(f"failed: {message.splitlines()[0]}")
+    elif status == "warning":
+        bar.write(f"warning: {message}")
     else:
         bar.write(f"wrote {message}")
     bar.update(1)

@@ -229,7 +229,7 @@ def hull_guard_points(vertices: np.ndarray, spacing_m: float, along_edges: bool 
         edges = np.unique(np.sort(np.concatenate(edges), axis=1), axis=0)
         a, b = vertices[edges[:, 0]], vertices[edges[:, 1]]
         count = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / spacing_m).astype(int), 1)
-        frac = np.concatenate([np.arange(1, c) / c for c in count])
+        frac = np.concatenate([np.zeros(0)] + [np.arange(1, c) / c for c in count])  # a smooth hull has none
         seg = np.repeat(np.arange(len(edges)), count - 1)
         points.append(a[seg] + frac[:, None] * (b[seg] - a[seg]))
     points = np.concatenate(points)

@@ -44,6 +44,7 @@ from retarget.probes import (
 from retarget.residuals import FIXED, InteractionConfig
 from retarget.stance import FootTurns, StanceConfig, demonstrated_stance, demonstrated_turns, sole_points
 from retarget.style import StyleConfig, StyleTargets, pelvis_height_ratio, robot_style_targets
+from retarget.substitute import Substitution, substitution_for
 
 MODES = ("native", "scaled", "robot-only")
 
@@ -126,6 +127,9 @@ class ChannelTrack:
     upper: np.ndarray  # (3,)
     guards: np.ndarray  # (G, 3) channel frame: hull vertices and edge points (none for the ground)
     margin: ErrorMargin | None  # grid − exact distance bound, subtracted in non-penetration rows
+    #: Object substitution (retarget.substitute): the captured object whose surface the
+    #: demonstrated triples are measured on, and the map of its witnesses onto ``channel``.
+    substitution: Substitution | None = None
 
     @property
     def is_ground(self) -> bool:
@@ -139,6 +143,13 @@ class FreeObject:
     name: str
     channel: int  # index of its ChannelTrack
     probes: np.ndarray  # (P_o, 3) object frame
+    #: (P_o, 3) object frame: each probe's demonstrated point, on the captured surface when the
+    #: object is a substitute (retarget.substitute); None: the probes themselves.
+    demo_probes: np.ndarray | None = None
+
+    @property
+    def demonstrated_probes(self) -> np.ndarray:
+        return self.probes if self.demo_probes is None else self.demo_probes
 
 
 @dataclass(frozen=True)
@@ -313,6 +324,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
     if mode != "robot-only":
         for obj in demo.objects:
             ch = _object_channel(obj, geometry, cache_dir)
+            swap = substitution_for(obj, ch, geometry, cache_dir)
             free = mode == "native" and not obj.static
             body = NUM_LINKS + len(objects) if free else FIXED
             lower, upper = ch.mesh.bounds
@@ -320,9 +332,10 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                                          quat_to_matrix(obj.quat_w),
                                          lower, upper, hull_guard_points(ch.mesh.vertices, guard_spacing_m,
                                                                          along_edges=True),
-                                         cached_margin(ch.grid, ch.mesh, MARGIN_REACH_M, cache_dir)))
+                                         cached_margin(ch.grid, ch.mesh, MARGIN_REACH_M, cache_dir), swap))
             if free:
-                objects.append(FreeObject(obj.name, len(channels) - 1, ch.surface.points))
+                objects.append(FreeObject(obj.name, len(channels) - 1, ch.surface.points,
+                                          None if swap is None else swap.demonstrated_points(ch.surface.points)))
 
     targets = robot_style_targets(part_pos, demo.part_quat_w, kin, pelvis_height_ratio(demo.stature_m * scale))
     guards = robot_guard_points(guard_spacing_m)

@@ -49,14 +49,20 @@ def _demo_triples(track: ChannelTrack, x_w: np.ndarray, rot: np.ndarray, pos: np
                   band: float) -> tuple[Triples, np.ndarray]:
     """Triples of demonstrated points against a channel; only points near it are queried."""
     x_c = to_channel_frame(x_w, rot, pos)
-    near = np.flatnonzero(near_channel(track, x_c, band))
     out = _far_triples(len(x_w), band)
+    if track.substitution is not None:
+        # measured on the captured surface, ŵ carried onto the substitute (retarget.substitute)
+        near, d, w, n = track.substitution.demonstrated_triples(x_c, band)
+    else:
+        near = np.flatnonzero(near_channel(track, x_c, band))
+        if len(near):
+            # once per frame: the exact witness where the grid's blend is unreliable (geometry doc)
+            q = track.channel.query(x_c[near], exact_witness=True)
+            d, w, n = q.d, q.w, q.n
     if len(near):
-        # once per frame: the exact witness where the grid's blend is unreliable (geometry doc)
-        q = track.channel.query(x_c[near], exact_witness=True)
-        out.d[near], out.w[near], out.n[near] = q.d, q.w, q.n
+        out.d[near], out.w[near], out.n[near] = d, w, n
         # ŵ's place in the geodesic table, for the r^x rows of every iterate of the frame
-        hat = track.channel.geodesic_weights(q.w)
+        hat = track.channel.geodesic_weights(w)
         if hat is not None:
             geodesic = tuple(np.zeros((len(x_w),) + h.shape[1:], h.dtype) for h in hat)
             for full, part in zip(geodesic, hat):
@@ -81,7 +87,7 @@ def frame_targets(problem: Problem, t: int) -> FrameTargets:
     obj_t, obj_a = [], []
     for obj in problem.objects:
         own = problem.channels[obj.channel]
-        x_w = obj.probes @ own.rot_w[t].T + own.pos_w[t]
+        x_w = obj.demonstrated_probes @ own.rot_w[t].T + own.pos_w[t]
         per_t, per_a = [], []
         for c, track in enumerate(problem.channels):
             if c == obj.channel:

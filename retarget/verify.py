@@ -8,7 +8,8 @@
   (the reference's contact annotations);
 * joint position limits and joint velocity limits (finite differences of the stored joints);
 * object contact hold: over the frames where a demonstrated hand is within ``contact_m`` of an
-  object, the fraction where the robot's hand on that side is too;
+  object, the fraction where the robot's hand on that side is too (the robot measured against
+  the reference's own object mesh: a substitute's, when the reference carries one);
 * the lowest object vertex over time (an object must not sink into the floor).
 
 The demonstration must be the one the reference was made from, at the reference's rate and in
@@ -24,7 +25,9 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.robot_geometry import posed_vertices, visual_meshes
 from otr_gym.rotations import quat_to_matrix
-from retarget.meshes import object_mesh, signed_distance
+from retarget.meshes import as_trimesh, object_mesh, signed_distance
+from retarget.substitute import SubstituteObject
+
 
 #: Demonstrated and robot hands compared by the contact-hold check (human part, G1 link).
 HANDS = (("L_Wrist", "left_wrist_yaw_link"), ("R_Wrist", "right_wrist_yaw_link"))
@@ -73,7 +76,14 @@ def check_reference(reference, demo, contact_m: float = 0.02) -> ReferenceChecks
         src = objects.get(track.name)
         if src is None:
             continue
+        # the robot meets the reference's own mesh (a substitute, when it carries one); the
+        # demonstrated hands met the captured object
         mesh = object_mesh(src.vertices, src.faces, f"object '{track.name}'")
+        if track.mesh_vertices is not None and track.mesh_faces is not None:
+            mesh = object_mesh(track.mesh_vertices, track.mesh_faces, f"{reference.source}: mesh of '{track.name}'")
+        captured = object_mesh(src.vertices, src.faces, f"object '{track.name}'")
+        if isinstance(src, SubstituteObject) and src.demonstrated_mesh is not None:
+            captured = src.demonstrated_mesh
         rot = quat_to_matrix(track.quat_w)  # (T, 3, 3) object → world
         lo, hi = mesh.bounds
         obj_w = np.einsum("tij,vj->tvi", rot, mesh.vertices) + track.pos_w[:, None]
@@ -96,11 +106,11 @@ def check_reference(reference, demo, contact_m: float = 0.02) -> ReferenceChecks
             k = demo.surface.part_names.index(part)
             hv = human_w[:, part_of == k]
             local = np.einsum("tji,tvj->tvi", demo_rot, hv - src.pos_w[:, None])
-            near = np.all((local > lo - contact_m) & (local < hi + contact_m), axis=2)
+            near = np.all((local > captured.bounds[0] - contact_m) & (local < captured.bounds[1] + contact_m), axis=2)
             human_d = np.full(T, np.inf)
             t_idx, v_idx = np.nonzero(near)
             if len(t_idx):
-                d, _, _ = signed_distance(mesh, local[t_idx, v_idx])
+                d, _, _ = signed_distance(captured, local[t_idx, v_idx])
                 np.minimum.at(human_d, t_idx, d)
             in_contact = np.maximum(human_d, 0.0) < contact_m
             hold_total += int(in_contact.sum())
@@ -115,6 +125,54 @@ def check_reference(reference, demo, contact_m: float = 0.02) -> ReferenceChecks
         joint_limit_excess_rad=excess, joint_speed_ratio=float(speed.max()) if len(speed) else 0.0,
         hand_hold=hold_hits / hold_total if hold_total else float("nan"), hand_contact_frames=hold_total,
         object_min_height_m=min_height, frames=T)
+
+
+def object_in_robot_depth(reference, spacing_m: float = 0.005, prefilter_m: float = 0.003) -> float:
+    """Deepest point of a carried object's surface inside a G1 link's visual mesh (m, 0 if none).
+
+    The other direction of ``object_penetration_mesh_m``: a box edge or corner can cut into a
+    link between the link's vertices. The object surface (the reference's mesh) is sampled
+    every ~``spacing_m`` plus its vertices. Points are screened with the links' 5 mm distance
+    grids (``retarget.problem.robot_link_grids``, error ≤ 0.3 mm), and those closer than
+    ``prefilter_m`` are measured exactly (signed distance, winding-number sign).
+    """
+    from retarget.geometry import sample_surface
+    from retarget.problem import robot_link_grids
+
+    meshes = visual_meshes()
+    names = [b for b in robot.BODY_NAMES if b in meshes]
+    body = np.array(reference.body_index(names))
+    grid_of = np.array([robot.BODY_NAMES.index(b) for b in names])
+    grids = robot_link_grids(0.05)
+    links = [as_trimesh(meshes[b].vertices, meshes[b].faces, f"G1 link {b}") for b in names]
+    centre = np.stack([0.5 * (m.bounds[0] + m.bounds[1]) for m in links])
+    radius = np.array([np.linalg.norm(m.vertices - c, axis=1).max() for m, c in zip(links, centre)])
+    link_rot = quat_to_matrix(reference.body_quat_w[:, body])  # (T, L, 3, 3)
+    link_pos = reference.body_pos_w[:, body]
+    centre_w = np.einsum("tlij,lj->tli", link_rot, centre) + link_pos
+    deepest = 0.0
+    for track in reference.objects:
+        if track.mesh_vertices is None or track.mesh_faces is None:
+            continue
+        mesh = object_mesh(track.mesh_vertices, track.mesh_faces, f"{reference.source}: mesh of '{track.name}'")
+        pts = np.concatenate([mesh.vertices, sample_surface(mesh, 1.0 / spacing_m**2).points])
+        o_centre = 0.5 * (mesh.bounds[0] + mesh.bounds[1])
+        o_radius = float(np.linalg.norm(pts - o_centre, axis=1).max())
+        rot = quat_to_matrix(track.quat_w)
+        o_centre_w = rot @ o_centre + track.pos_w
+        meet = np.linalg.norm(centre_w - o_centre_w[:, None], axis=-1) < radius + o_radius  # (T, L)
+        for k in np.flatnonzero(meet.any(axis=0)):
+            local = []
+            for t in np.flatnonzero(meet[:, k]):
+                x_l = (pts @ rot[t].T + track.pos_w[t] - link_pos[t, k]) @ link_rot[t, k]  # Rᵀ(x − p)
+                x_l = x_l[np.linalg.norm(x_l - centre[k], axis=1) < radius[k]]
+                d, _, inside = grids.distance(x_l, np.full(len(x_l), grid_of[k]))
+                local.append(x_l[inside & (d < prefilter_m)])
+            local = np.concatenate(local)
+            if len(local):
+                d, _, _ = signed_distance(links[k], local)
+                deepest = max(deepest, float(-d.min()))
+    return deepest
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -133,9 +191,10 @@ def main(argv: list[str] | None = None) -> int:
     reference = Reference.load(args.reference)
     demo = resample_demonstration(load_demonstration(args.demo, args.object), reference.fps)
     limit_mm = 0.3
-    for key, value in check_reference(reference, demo).as_dict().items():
+    checks = {**check_reference(reference, demo).as_dict(), "object_in_robot_m": object_in_robot_depth(reference)}
+    for key, value in checks.items():
         note = ""
-        if key.endswith("penetration_mesh_m"):
+        if key.endswith(("penetration_mesh_m", "in_robot_m")):
             note = "ok" if value <= limit_mm * 1e-3 else f"beyond {limit_mm} mm"
         print(f"{key:28s} {value:.6g} {note}")
     return 0

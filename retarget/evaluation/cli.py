@@ -80,7 +80,7 @@ def main(args: argparse.Namespace) -> int:
     from retarget.evaluation.alignment import AlignmentError
     from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
     from otr_gym.io import write_json
-    from retarget.evaluation.report import format_scale_notes, format_table, read_json
+    from retarget.evaluation.report import format_object_notes, format_scale_notes, format_table, read_json
     from retarget.evaluation.sequence import dataset_medians, evaluate_sequence
     from retarget.meshes import InvalidMeshError
 
@@ -133,6 +133,9 @@ def main(args: argparse.Namespace) -> int:
         print(format_table(records))
         print()
         print(format_scale_notes(records))
+        notes = format_object_notes(records)
+        if notes:
+            print(notes)
         print("\n".join(f"{r['name']}: {r['frames']} frames in {r['seconds']:.1f} s" for r in records
                         if "seconds" in r))
     if args.plots and records:

@@ -65,6 +65,27 @@ def format_scale_notes(records: list[dict]) -> str:
     return "\n".join(out)
 
 
+def format_object_notes(records: list[dict]) -> str:
+    """For sequences with several objects, one line each: the robot's scores per object channel
+    and the objects' own contacts (box–table, box–ground). Empty when every sequence has one."""
+    def scores(s: dict) -> str:
+        if not s["n_h"] and not s["n_r"]:
+            return "no contact in either"
+        return (f"R {_cell(s['recall'], 100.0, 0)} % P {_cell(s['precision'], 100.0, 0)} % "
+                f"dd {_cell(s['dd_m'], 1e3, 1)} mm (H {s['n_h']}, R {s['n_r']})")
+
+    out = []
+    for r in records:
+        details = r.get("details", {})
+        channels, pairs = details.get("object_channels", {}), details.get("object_pairs", {})
+        if len(channels) < 2:
+            continue
+        parts = [f"robot–{name} {scores(s)}" for name, s in channels.items()]
+        parts += [f"{name.replace('|', '–')} {scores(s)}" for name, s in pairs.items()]
+        out.append(f"{r['name']}: " + "; ".join(parts))
+    return "\n".join(out)
+
+
 def read_json(path: str | Path) -> dict:
     """An earlier evaluation record; a corrupt file raises ValueError naming it."""
     path = Path(path)

@@ -6,8 +6,10 @@ that world (``scale``; the demonstrated contacts stay in the captured world unle
 ``EvalConfig.contacts_world`` says otherwise), match objects (``channels``), then per frame and
 body unit (``units``)
 measure the exact distance and witness of the demonstrated and the robot unit to the ground
-and to every object (``proximity``) and compare them (``contact``); add the style error
-(``orientation``), self-penetration (``self_collision``), foot sliding and clearance
+and to every object (``proximity``) and compare them (``contact``), pooled over the objects and
+per object channel (details); score the objects' own contacts, object–object (the box on the
+table: the ``pair_*`` metrics) and object–ground (details) (``object_pairs``); add the style
+error (``orientation``), self-penetration (``self_collision``), foot sliding and clearance
 (``feet``) and object drift. Nothing here reads the solver's grids, probes or annotations.
 """
 
@@ -27,6 +29,7 @@ from retarget.evaluation.channels import object_channels, reference_tracks
 from retarget.evaluation.config import EvalConfig
 from retarget.evaluation.contact import contact_scores, interaction_set
 from retarget.evaluation.feet import skate_and_clear
+from retarget.evaluation.object_pairs import object_pair_samples, pooled_scores
 from retarget.evaluation.orientation import orientation_error_deg
 from retarget.evaluation.proximity import BoundedMesh, ground_proximity, mesh_proximity
 from retarget.evaluation.scale import ScaleFit, recover_scale, scale_demonstration
@@ -161,6 +164,11 @@ def evaluate_sequence(ref: Reference, demo: Demonstration, cfg: EvalConfig | Non
         w_hat[:, :, 0, :2] *= scale.sc
     ground = contact_scores(d_hat[..., 0], w_hat[..., 0, :], d[..., 0], w[..., 0, :], eps)
     objects = contact_scores(d_hat[..., 1:], w_hat[..., 1:, :], d[..., 1:], w[..., 1:, :], eps)
+    per_object = {c.name: contact_scores(d_hat[..., k], w_hat[..., k, :], d[..., k], w[..., k, :], eps)
+                  for k, c in enumerate(channels, start=1)}
+    # the objects' own contacts: object–object (box–table) pooled into the pair metrics, object–ground in details
+    pairs = object_pair_samples(channels, eps)
+    between = pooled_scores([p for p in pairs if p.b != "ground"], eps)
 
     # ---- style: R̂_ℓ = R_h(ℓ) O_ℓ
     offsets = alignment_offsets()
@@ -192,6 +200,8 @@ def evaluate_sequence(ref: Reference, demo: Demonstration, cfg: EvalConfig | Non
         "object_dd_m": objects.dd_m, "object_dw_m": objects.dw_m, "object_recall": objects.recall,
         "object_precision": objects.precision, "object_jaccard": objects.jaccard,
         "drift_m": float(np.mean(list(drifts.values()))) if drifts else float("nan"),
+        "pair_dd_m": between.dd_m, "pair_recall": between.recall, "pair_precision": between.precision,
+        "pair_jaccard": between.jaccard,
     }
     worst = int(np.argmax(pen.depth_m))
     # the file's body poses are what is scored; say how far they are from our G1's own kinematics
@@ -200,6 +210,8 @@ def evaluate_sequence(ref: Reference, demo: Demonstration, cfg: EvalConfig | Non
     details = {
         "ground_counts": {"H": ground.n_h, "R": ground.n_r, "H∩R": ground.n_both},
         "object_counts": {"H": objects.n_h, "R": objects.n_r, "H∩R": objects.n_both},
+        "object_channels": {name: sc.as_dict() for name, sc in per_object.items()},
+        "object_pairs": {p.name: p.scores(eps).as_dict() for p in pairs},
         "stance_frames": {f: int(stance[:, i].sum()) for i, f in enumerate(feet)},
         "drift_m_per_object": drifts,
         "objects": [{"name": c.name, "tracked": c.tracked, "static": c.static, "mesh": c.ref_mesh.name}
