@@ -651,6 +651,9 @@ def _alignments(sk: _Skeleton) -> tuple[np.ndarray, dict[str, str]]:
     for k, part in enumerate(PART_NAMES):  # parents first
         side = part[0] if part[:2] in ("L_", "R_") else ""
         primary = _PRIMARY[part]
+        if part.endswith(("_Ankle", "_Foot")):
+            out[k], how[part] = _flat_foot_alignment(p, w, side, k, rest), "flat in stance, heading ankle -> toe"
+            continue
         if part == "Pelvis":
             a_from, a_w = rest_dir("R_Hip", "L_Hip"), bone("R_Hip", "L_Hip")
         elif primary is not None:
@@ -697,6 +700,35 @@ def _alignments(sk: _Skeleton) -> tuple[np.ndarray, dict[str, str]]:
             how[part] = f"bone, roll from {label}"
         out[k] = quat_to_matrix(quat_from_vector_pairs(a_from, b_from, a_to, b_to))
     return out, how
+
+
+#: Stance frames of a foot: its toe joint within this height of its lowest (5th percentile) height.
+STANCE_BAND_M = 0.02
+
+
+def _flat_foot_alignment(p: np.ndarray, w: np.ndarray, side: str, k: int, rest: np.ndarray) -> np.ndarray:
+    """A_k for a foot part (ankle or toes): the rotation that makes the SMPL-X foot lie flat in
+    the stance frames, heading where the skeleton's ankle -> toe points.
+
+    Matching the ankle -> toe bone instead would tilt the foot by the difference between the
+    rig's and SMPL-X's joint placements (Xia's toe joint is 10° below its ankle, SMPL-X's 26°:
+    heels 4 cm in the floor). Chordal mean over the stance frames of W_j(t)ᵀ R_flat(t).
+    """
+    from retarget.human import PART_NAMES, SMPLX_REST_QUAT_W
+
+    ankle, toe = PART_NAMES.index(f"{side}_Ankle"), PART_NAMES.index(f"{side}_Foot")
+    height = p[:, toe, 2]
+    stance = height <= np.percentile(height, 5) + STANCE_BAND_M
+    q0 = quat_to_matrix(SMPLX_REST_QUAT_W)
+    rest_heading = (q0 @ (rest[toe] - rest[ankle]))[:2]
+    heading = (p[stance, toe] - p[stance, ankle])[:, :2]
+    yaw = np.arctan2(heading[:, 1], heading[:, 0]) - np.arctan2(rest_heading[1], rest_heading[0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    rz = np.zeros((len(yaw), 3, 3))
+    rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1.0
+    m = np.einsum("tba,tbc->ac", w[stance, k], rz @ q0)
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
 # ------------------------------------------------------------------ the reader
@@ -774,3 +806,20 @@ def read_bvh(path: str | Path, options: BvhOptions | None = None, ground: bool =
                 "joint_fit_mean_m": info["joint_fit_mean_m"], "joint_fit_max_m": info["joint_fit_max_m"],
                 "bvh": info})
 
+
+
+# ------------------------------------------------------------------ command-line options
+
+
+def add_arguments(p) -> None:
+    """``--skeleton-map``, ``--units``, ``--up`` for commands that read demonstrations."""
+    p.add_argument("--skeleton-map", type=str, default=None, metavar="YAML",
+                   help="BVH: map of SMPL-X part -> joint name, for skeletons of no known family")
+    p.add_argument("--units", type=str, default=None, metavar="UNIT",
+                   help="BVH: length unit (m, cm, mm, in, ft, cmu, or metres per unit; default: from the body's size)")
+    p.add_argument("--up", choices=UP_AXES, default=None, help="BVH: up axis of the file (default: detected)")
+
+
+def options_from_args(args) -> BvhOptions:
+    return BvhOptions(skeleton_map=getattr(args, "skeleton_map", None), units=getattr(args, "units", None),
+                      up=getattr(args, "up", None))
