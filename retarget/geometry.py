@@ -509,9 +509,7 @@ def cached_arrays(path: Path, key: str, build: Callable[[], dict[str, np.ndarray
             warnings.warn(f"{path}: invalid cache file ({type(exc).__name__}: {exc}); rebuilding", stacklevel=3)
     arrays = build()
     save_npz(path, {**arrays, "cache_key": np.array(key)}, compressed=False)
-    # what a later run loads (C order, stored dtype): a fresh build then gives the same
-    # floating-point results as a cached one, so outputs do not depend on the cache's state
-    return {k: np.ascontiguousarray(v) for k, v in arrays.items()}
+    return arrays
 
 
 def _hash_key(*parts: object) -> str:
