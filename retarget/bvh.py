@@ -539,19 +539,21 @@ class _Skeleton:
     missing: list[str]
 
 
-def _tip(bvh: BvhFile, joint: int, pos: np.ndarray, rot: np.ndarray, scale: float) -> np.ndarray | None:
-    """Where a segment ends beyond ``joint`` (T, 3): the mean of its children, else its End Site;
-    None when both are (near) zero length."""
+def _tip(bvh: BvhFile, joint: int, pos: np.ndarray, rot: np.ndarray, offset_to_world: np.ndarray) -> np.ndarray | None:
+    """Where a segment ends beyond ``joint`` (T, 3): the mean of its children, else its End Site
+    (file offset times ``offset_to_world``, axes change and scale); None when both are (near) zero
+    length. ``pos``/``rot`` are the joints' world poses in our axes (rot = C R Cᵀ)."""
     children = [c for c, p in enumerate(bvh.parents) if p == joint]
     if children:
         tip = pos[:, children].mean(axis=1)
         # a zero-length child (Xia's LeftFingerBase) passes on to its own children
         if np.linalg.norm(tip - pos[:, joint], axis=-1).mean() < 1e-3:
-            tips = [t for t in (_tip(bvh, c, pos, rot, scale) for c in children) if t is not None]
+            tips = [t for t in (_tip(bvh, c, pos, rot, offset_to_world) for c in children) if t is not None]
             return np.mean(tips, axis=0) if tips else None
         return tip
-    if joint in bvh.end_sites and np.linalg.norm(bvh.end_sites[joint]) * scale > 1e-3:
-        return pos[:, joint] + np.einsum("tab,b->ta", rot[:, joint], bvh.end_sites[joint] * scale)
+    end = offset_to_world @ bvh.end_sites[joint] if joint in bvh.end_sites else np.zeros(3)
+    if np.linalg.norm(end) > 1e-3:
+        return pos[:, joint] + np.einsum("tab,b->ta", rot[:, joint], end)
     return None
 
 
@@ -573,7 +575,7 @@ def _mapped_skeleton(bvh: BvhFile, mapping: dict[str, JointRef], to_world: np.nd
             continue
         if ref.end:
             part_pos[:, k] = pos[:, ref.joint] + np.einsum("tab,b->ta", rot[:, ref.joint],
-                                                           bvh.end_sites[ref.joint] * scale)
+                                                           to_world @ bvh.end_sites[ref.joint] * scale)
         else:
             part_pos[:, k] = pos[:, ref.joint]
         joint_of_part[k] = ref.joint
@@ -593,16 +595,18 @@ def _mapped_skeleton(bvh: BvhFile, mapping: dict[str, JointRef], to_world: np.nd
     for part in ("L_Wrist", "R_Wrist", "L_Foot", "R_Foot", "Head"):
         ref = mapping[part]
         if not ref.end:
-            tip = _tip(bvh, ref.joint, pos, rot, scale)
+            tip = _tip(bvh, ref.joint, pos, rot, to_world * scale)
             if tip is not None:
                 tips[part] = tip
     return _Skeleton(joint_of_part, part_pos, rot[:, joint_of_part], tips, missing)
 
 
-#: Primary child of each part (the bone matched exactly); None: the part has no child joint.
+#: The joint each part's bone points to (matched exactly); None: the part has no child joint. The
+#: spine parts point to the neck: SMPL-X's short spine segments lean up to 30° from the trunk
+#: line, and rigs place their spine joints differently.
 _PRIMARY = {
-    "Pelvis": None, "L_Hip": "L_Knee", "R_Hip": "R_Knee", "Spine1": "Spine2", "L_Knee": "L_Ankle",
-    "R_Knee": "R_Ankle", "Spine2": "Spine3", "L_Ankle": "L_Foot", "R_Ankle": "R_Foot", "Spine3": "Neck",
+    "Pelvis": None, "L_Hip": "L_Knee", "R_Hip": "R_Knee", "Spine1": "Neck", "L_Knee": "L_Ankle",
+    "R_Knee": "R_Ankle", "Spine2": "Neck", "L_Ankle": "L_Foot", "R_Ankle": "R_Foot", "Spine3": "Neck",
     "L_Foot": None, "R_Foot": None, "Neck": "Head", "L_Collar": "L_Shoulder", "R_Collar": "R_Shoulder",
     "Head": None, "L_Shoulder": "L_Elbow", "R_Shoulder": "R_Elbow", "L_Elbow": "L_Wrist", "R_Elbow": "R_Wrist",
     "L_Wrist": None, "R_Wrist": None,
