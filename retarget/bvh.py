@@ -41,7 +41,8 @@ From a skeleton to the 22 SMPL-X parts (``retarget.human``):
 * **Body**: ``fit_shape`` fits the mannequin-x shape coefficients and the pelvis track to the
   joints (least squares, as for OMOMO); the mean and largest joint errors go to ``source``.
   Parts are then posed by the fitted body's forward kinematics, and the feet are put on the
-  floor as for every reader (``retarget.demos`` grounding).
+  floor as for every reader (``retarget.demos`` grounding), after levelling a tilted capture
+  floor (``level_floor``).
 
 What was assumed (family, units, up axis, stature, fit error) is printed once per file
 (stderr) and kept in ``Demonstration.source["bvh"]``.
@@ -747,6 +748,43 @@ def _flat_foot_alignment(p: np.ndarray, w: np.ndarray, side: str, k: int, rest: 
     return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
+#: Floors tilted less than this are left alone; a clip must travel at least MIN_FLOOR_SPAN_M
+#: for its footprints to define a plane.
+MIN_FLOOR_TILT_DEG = 0.2
+MIN_FLOOR_SPAN_M = 1.0
+
+
+def level_floor(surface, part_pos: np.ndarray, part_quat: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Turn the clip so that its floor is horizontal: captures whose floor (or calibration) is
+    not level put the feet deeper into z = 0 the further the subject walks (ganimator's CMU walk
+    rises 8 cm over 3.5 m). The floor is the plane through the footprints: the per-frame lowest
+    surface points, keeping the lower half of the residuals three times (the swing frames lie
+    above it). Returns the turned poses and the tilt (deg; 0 when left alone)."""
+    from otr_gym.rotations import quat_from_rotvec, quat_mul
+
+    verts = surface.posed_vertices(part_pos, part_quat)  # (T, V, 3)
+    lowest = verts[np.arange(len(verts)), verts[..., 2].argmin(axis=1)]  # (T, 3)
+    # footprints lie along the path: only the slope along its main direction is observable
+    xy = lowest[:, :2] - lowest[:, :2].mean(axis=0)
+    direction = np.linalg.svd(xy, full_matrices=False)[2][0]
+    along = xy @ direction
+    keep = np.ones(len(lowest), dtype=bool)
+    for _ in range(3):
+        slope, _ = np.polyfit(along[keep], lowest[keep, 2], 1)
+        residual = lowest[:, 2] - slope * along
+        keep = residual <= np.median(residual[keep])
+    span = float(np.ptp(along[keep]))
+    tilt = float(np.degrees(np.arctan(abs(slope))))
+    if tilt < MIN_FLOOR_TILT_DEG or span < MIN_FLOOR_SPAN_M:
+        return part_pos, part_quat, 0.0
+    normal = _unit(np.array([-slope * direction[0], -slope * direction[1], 1.0]))
+    axis = np.cross(normal, [0.0, 0.0, 1.0])
+    turn = quat_from_rotvec(_unit(axis) * np.radians(tilt))
+    centre = lowest[keep].mean(axis=0)
+    rot = quat_to_matrix(turn)
+    return (centre + (part_pos - centre) @ rot.T, quat_normalize(quat_mul(turn, part_quat)), tilt)
+
+
 # ------------------------------------------------------------------ the reader
 
 
@@ -799,6 +837,9 @@ def read_bvh(path: str | Path, options: BvhOptions | None = None, ground: bool =
     fit = fit_shape(sk.pos_w, part_quat, ridge_m2=SHAPE_RIDGE_M2)
     model = HumanModel(fit.shape)
     part_pos = model.forward_kinematics(part_quat, fit.pelvis_pos_w)
+    tilt_deg = 0.0
+    if ground:
+        part_pos, part_quat, tilt_deg = level_floor(model.surface, part_pos, part_quat)
     shift = _ground_shift(model.surface, part_pos, part_quat) if ground else 0.0
     part_pos[..., 2] += shift
 
@@ -807,14 +848,15 @@ def read_bvh(path: str | Path, options: BvhOptions | None = None, ground: bool =
         "up_how": up_how, "missing_parts": sk.missing, "roll_from": how,
         "joint_of_part": {p: bvh.joint_names[j] for p, j in zip(PART_NAMES, sk.joint_of_part, strict=True)},
         "stature_m": model.stature_m, "joint_fit_mean_m": float(fit.joint_error_m.mean()),
-        "joint_fit_max_m": float(fit.joint_error_m.max()), "ground_shift_m": shift,
+        "joint_fit_max_m": float(fit.joint_error_m.max()), "ground_shift_m": shift, "floor_tilt_deg": tilt_deg,
     }
     info["statement"] = (
         f"{path.name}: skeleton {family} ({22 - len(sk.missing)} of 22 parts mapped"
         f"{', placed: ' + ', '.join(sk.missing) if sk.missing else ''}); units {unit_name} ({unit_how}); "
         f"up axis {up} ({up_how}); mannequin-x body fitted to the joints: stature {model.stature_m:.2f} m, "
         f"joint error mean {100 * info['joint_fit_mean_m']:.1f} cm, max {100 * info['joint_fit_max_m']:.1f} cm; "
-        f"feet put on the floor (shift {100 * shift:+.1f} cm)")
+        f"feet put on the floor (shift {100 * shift:+.1f} cm"
+        f"{f', floor levelled by {tilt_deg:.2f}°' if tilt_deg else ''})")
     if not options.quiet:
         print(info["statement"], file=sys.stderr)
     return Demonstration(
