@@ -768,6 +768,8 @@ def level_floor(surface, part_pos: np.ndarray, part_quat: np.ndarray) -> tuple[n
     xy = lowest[:, :2] - lowest[:, :2].mean(axis=0)
     direction = np.linalg.svd(xy, full_matrices=False)[2][0]
     along = xy @ direction
+    if np.ptp(along) < MIN_FLOOR_SPAN_M:
+        return part_pos, part_quat, 0.0
     keep = np.ones(len(lowest), dtype=bool)
     for _ in range(3):
         slope, _ = np.polyfit(along[keep], lowest[keep, 2], 1)
