@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("otr_gym.summary", "summarise a demonstration or reference file"),
     "retarget": ("retarget.pipeline", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
     "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
+    "view": ("retarget.viewer", "web viewer (viser): references, objects, the person, contacts, metrics"),
     "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),
     "evaluate": ("agents.evaluate", "success rate and MPJPE of a trained policy"),
     "export": ("agents.export", "export a policy to ONNX with metadata"),
