@@ -153,8 +153,9 @@ class ReferenceViewer:
     """The viser page for several references of one demonstration, or a demonstration alone."""
 
     def __init__(self, tracks: list[RobotTrack], person: PersonTrack | None, *, host: str = "127.0.0.1",
-                 port: int = 8080, demo=None, references: dict | None = None) -> None:
-        """``demo`` and ``references`` (name -> Reference, the tracks' sources) enable the metrics."""
+                 port: int = 8080, demo=None, references: dict | None = None, shadows: bool = True) -> None:
+        """``demo`` and ``references`` (name -> Reference, the tracks' sources) enable the metrics;
+        ``shadows=False`` halves the drawing work (browsers without a GPU)."""
         import viser
 
         if not tracks and person is None:
@@ -163,6 +164,7 @@ class ReferenceViewer:
         self.person = person
         self._demo = demo
         self._references = references or {}
+        self._shading = {} if shadows else {"cast_shadow": False, "receive_shadow": False}
         self.server = viser.ViserServer(host=host, port=port, label="OTR-Gym", verbose=False)
         self.server.scene.set_up_direction("+z")
         self.server.scene.add_grid("/floor", width=20.0, height=20.0, cell_size=0.5, plane="xy")
@@ -208,14 +210,16 @@ class ReferenceViewer:
             for link in next(iter(self.tracks.values())).link_names:
                 m = meshes[link]
                 self._link_handles[link] = scene.add_mesh_simple(f"/robot/{link}", m.vertices, m.faces,
-                                                                 color=ROBOT_COLOUR)
+                                                                 color=ROBOT_COLOUR, **self._shading)
             self._add_objects()
         if self.person is not None:
             for k, (v, f) in enumerate(zip(self.person.vertices, self.person.faces, strict=True)):
-                self._part_handles.append(scene.add_mesh_simple(f"/person/part{k}", v, f, color=HUMAN_COLOUR))
+                self._part_handles.append(scene.add_mesh_simple(f"/person/part{k}", v, f, color=HUMAN_COLOUR,
+                                                                **self._shading))
             for name, v, f, _, _ in self.person.objects:
                 self._person_object_handles[name] = scene.add_mesh_simple(f"/person_objects/{name}", v, f,
-                                                                          color=OBJECT_COLOUR, opacity=0.7)
+                                                                          color=OBJECT_COLOUR, opacity=0.7,
+                                                                          **self._shading)
 
     def _aim_camera(self) -> None:
         """Look at the middle of the motion from the front-left, at a distance that fits it."""
@@ -237,7 +241,7 @@ class ReferenceViewer:
         self._object_handles = {}
         for name, v, f, _, _ in self.track.objects if self.track else []:
             self._object_handles[name] = self.server.scene.add_mesh_simple(f"/objects/{name}", v, f,
-                                                                          color=OBJECT_COLOUR)
+                                                                          color=OBJECT_COLOUR, **self._shading)
 
     # ------------------------------------------------------------ GUI
 
@@ -398,11 +402,13 @@ class ReferenceViewer:
                 self.metrics_panel.content = metrics_markdown(track.metrics, track.metrics_note)
 
 
-def open_viewer(references: dict, demo=None, *, host: str = "127.0.0.1", port: int = 8080) -> ReferenceViewer:
+def open_viewer(references: dict, demo=None, *, host: str = "127.0.0.1", port: int = 8080,
+                shadows: bool = True) -> ReferenceViewer:
     """A viewer for ``references`` (name -> Reference) of ``demo`` (or ``demo`` alone)."""
     tracks = [robot_track(name, ref, demo) for name, ref in references.items()]
     person = person_track(demo) if demo is not None else None
-    return ReferenceViewer(tracks, person, host=host, port=port, demo=demo, references=dict(references))
+    return ReferenceViewer(tracks, person, host=host, port=port, demo=demo, references=dict(references),
+                           shadows=shadows)
 
 
 # ------------------------------------------------------------------ the command
@@ -417,6 +423,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--object", type=Path, default=None, metavar="MESH", help="object mesh of the demonstration (OMOMO)")
     p.add_argument("--port", type=int, default=8080, help="port of the web page (default 8080)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1; 0.0.0.0 for all)")
+    p.add_argument("--no-shadows", action="store_true", help="draw without shadows (faster in browsers without a GPU)")
     add_arguments(p)
 
 
@@ -441,7 +448,7 @@ def main(args: argparse.Namespace) -> int:
         if len(demos) > 1:
             raise ValueError(f"one demonstration at a time, got {[str(d) for d in demos]}")
         demo = load_demonstration(demos[0], args.object, bvh=options_from_args(args)) if demos else None
-        viewer = open_viewer(references, demo, host=args.host, port=args.port)
+        viewer = open_viewer(references, demo, host=args.host, port=args.port, shadows=not args.no_shadows)
     except (InvalidReferenceError, InvalidDemonstrationError, FileNotFoundError, ValueError) as exc:
         print(f"otr view: error: {exc}", file=sys.stderr)
         return 2
