@@ -268,8 +268,8 @@ def _read_motion(src: _Lines, frames: int, width: int, names, channels) -> np.nd
                 try:
                     float(token)
                 except ValueError:
-                    src.fail(f"frame {k}, column {c + 1} ({_column_owner(names, channels, c)}): {token!r} is not a number",
-                             row_lines[k])
+                    owner = _column_owner(names, channels, c)
+                    src.fail(f"frame {k}, column {c + 1} ({owner}): {token!r} is not a number", row_lines[k])
         raise
     values = values.reshape(frames, width)
     bad = np.argwhere(~np.isfinite(values))

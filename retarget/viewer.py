@@ -251,7 +251,7 @@ class ReferenceViewer:
             self.reference_choice = gui.add_dropdown("reference", tuple(self.tracks), initial_value=self.current)
             self.reference_choice.on_update(lambda _: self.select(self.reference_choice.value))
         self.slider = gui.add_slider("frame", min=0, max=max(self.num_frames - 1, 1), step=1, initial_value=0)
-        self.slider.on_update(lambda _: self.show(int(self.slider.value)))
+        self.slider.on_update(self._on_slider)
         self.play_button = gui.add_button("play")
         self.play_button.on_click(lambda _: self.toggle_play())
         self.speed = gui.add_dropdown("speed", SPEEDS, initial_value="1")
@@ -263,6 +263,11 @@ class ReferenceViewer:
         self.metrics_panel = gui.add_markdown(metrics_markdown(None, "computing…" if self._demo is not None
                                                                else "no demonstration given (--demo)")
                                               if self.tracks else "")
+
+    def _on_slider(self, _event) -> None:
+        # show() moves the slider itself: that echo (the frame shown) must not redraw everything again
+        if int(self.slider.value) != self.frame:
+            self.show(int(self.slider.value))
 
     def _legend(self) -> str:
         if not self.track or not self.track.channel_names:

@@ -308,3 +308,25 @@ def test_the_shared_bvh_walks_are_read_with_their_family_units_and_up_axis(share
     # walking: the pelvis travels and stays at walking height
     assert np.linalg.norm(demo.part_pos_w[-1, 0, :2] - demo.part_pos_w[0, 0, :2]) > 1.0
     assert 0.7 < np.median(demo.part_pos_w[:, 0, 2]) < 1.1
+
+
+# ------------------------------------------------------------------ commands
+
+
+def test_otr_inspect_reads_a_bvh_with_the_overrides_and_states_them(tmp_path, capsys):
+    from otr_gym.cli import main
+
+    path = write(tmp_path, stick_bvh(frames=[{}, {}]))
+    assert main(["inspect", str(path), "--units", "cm", "--up", "y"]) == 0
+    out = capsys.readouterr()
+    assert "demonstration (bvh)" in out.out and "2 @ 30 fps" in out.out
+    assert "units centimetres (given); up axis y (given)" in out.err
+
+
+def test_retarget_collects_bvh_files_from_folders(tmp_path):
+    from retarget.pipeline import collect_jobs
+
+    (tmp_path / "clips" / "a").mkdir(parents=True)
+    write(tmp_path / "clips" / "a", stick_bvh(), "walk.BVH")
+    jobs = collect_jobs([tmp_path / "clips"], tmp_path / "out")
+    assert [(j.source.name, j.output) for j in jobs] == [("walk.BVH", tmp_path / "out" / "a" / "walk.npz")]
