@@ -51,6 +51,7 @@ def main() -> int:
     parser.add_argument("--frames", type=int, default=500)
     parser.add_argument("--seconds", type=float, default=8.0, help="how long to play (s)")
     parser.add_argument("--no-shadows", action="store_true", help="the viewer's --no-shadows")
+    parser.add_argument("--viewport", default="1280x800", help="browser window, WIDTHxHEIGHT pixels")
     args = parser.parse_args()
     ref = walk_reference(args.frames)
     with socket.socket() as s:
@@ -60,7 +61,8 @@ def main() -> int:
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path="/usr/bin/chromium", args=list(CHROMIUM_ARGS))
-            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            width, height = (int(v) for v in args.viewport.split("x"))
+            page = browser.new_page(viewport={"width": width, "height": height})
             start = time.perf_counter()
             page.goto(f"http://127.0.0.1:{port}")
             page.wait_for_selector("canvas")
@@ -83,7 +85,7 @@ def main() -> int:
     finally:
         viewer.close()
     print(f"{ref.num_frames}-frame reference at {ref.fps:g} fps; {platform.node()}, {os.cpu_count()} cores, "
-          f"{time.strftime('%Y-%m-%d')}; Debian chromium, software WebGL; shadows {not args.no_shadows}")
+          f"{time.strftime('%Y-%m-%d')}; Debian chromium, software WebGL; shadows {not args.no_shadows}, {args.viewport} window")
     print(f"page load {load_s:.2f} s; while playing: {raf / args.seconds:.1f} render fps, "
           f"{shown / args.seconds:.1f} reference frames/s shown")
     return 0
