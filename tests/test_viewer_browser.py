@@ -140,3 +140,31 @@ def test_the_person_beside_the_robot_with_the_eval_metrics_and_the_readme_pictur
             Path(target).write_bytes(png)
     finally:
         viewer.close()
+
+
+def test_references_of_one_demonstration_are_switchable_on_the_page(browser, annotated_walk, standing_reference):
+    stand = Reference.load(standing_reference)
+    viewer = open_viewer({"walk": annotated_walk, "stand": stand}, port=_free_port())
+    try:
+        page = _open(browser, viewer.server.get_port())
+        page.get_by_text(f"frame 0 / {annotated_walk.num_frames - 1}").wait_for()
+        page.locator("input.mantine-Select-input[value='walk']").click()
+        page.get_by_role("option", name="stand").click()
+        page.get_by_text(f"stand · frame 0 / {stand.num_frames - 1}").wait_for()
+        assert viewer.current == "stand" and viewer.track.contact_links is None
+        assert page.get_by_text("contacts: no annotations in this reference").count() == 1
+    finally:
+        viewer.close()
+
+
+def test_a_demonstration_alone_is_shown_with_its_floor_contacts(browser):
+    from clips import clip
+
+    demo = clip("walk", 40, 70)
+    viewer = open_viewer({}, demo, port=_free_port())
+    try:
+        page = _open(browser, viewer.server.get_port())
+        page.get_by_text(f"frame 0 / {demo.num_frames - 1}").wait_for()
+        assert viewer.track is None and _orange_pixels(_canvas(page)) > 30  # its soles on the floor
+    finally:
+        viewer.close()
