@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "retarget": ("retarget.pipeline", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
     "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
     "variants": ("retarget.variants", "one demonstration, many references: substitute shapes and sizes (Table IV)"),
+    "view": ("retarget.viewer", "web viewer (viser): references, objects, the person, contacts, metrics"),
     "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),
     "evaluate": ("agents.evaluate", "success rate and MPJPE of a trained policy"),
     "export": ("agents.export", "export a policy to ONNX with metadata"),

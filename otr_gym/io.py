@@ -7,9 +7,11 @@ A writer gets a temporary file in the destination folder (same file system, so t
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
+import zipfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -45,10 +47,29 @@ def atomic_write(path: str | Path, write: Callable[[object], None], binary: bool
     return Path(path)
 
 
+#: Time stamp of every member of our .npz files: the same arrays always give the same bytes
+#: (``np.savez`` stamps the current time), so two runs — serial or on a cluster — can be compared
+#: byte for byte.
+NPZ_MEMBER_TIME = (1980, 1, 1, 0, 0, 0)
+
+
+def npz_bytes(arrays: dict[str, np.ndarray], compressed: bool = True) -> bytes:
+    """The ``.npz`` (zip of ``.npy``, what ``np.load`` reads) of ``arrays``, reproducibly."""
+    buffer = io.BytesIO()
+    method = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
+    with zipfile.ZipFile(buffer, "w", compression=method) as archive:
+        for key, value in arrays.items():
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=NPZ_MEMBER_TIME)
+            info.compress_type = method
+            with archive.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(value), allow_pickle=False)
+    return buffer.getvalue()
+
+
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool = True) -> Path:
-    """``np.savez(_compressed)`` atomically."""
-    saver = np.savez_compressed if compressed else np.savez
-    return atomic_write(path, lambda f: saver(f, **arrays))
+    """An ``.npz`` file written atomically and reproducibly (``npz_bytes``)."""
+    data = npz_bytes(arrays, compressed)
+    return atomic_write(path, lambda f: f.write(data))
 
 
 def write_json(path: str | Path, payload, indent: int = 2) -> Path:

@@ -2,7 +2,7 @@
 
 References (Holosoma / BeyondMimic / mjlab / ours .npz) report frames, fps, duration, bodies,
 objects, velocity consistency and contact statistics from their annotations; anything else is
-read as a demonstration (AMASS, OMOMO .pt, our demonstration .npz) and reports its parts,
+read as a demonstration (AMASS, OMOMO .pt, BVH, our demonstration .npz) and reports its parts,
 objects, stature and ground/object contact statistics of the posed human surface. Deploy logs
 (``otr deploy --log``) report cycle timing, missed deadlines, stage changes and tracking error.
 """
@@ -22,6 +22,9 @@ CONTACT_EPS_M = 0.02  # the paper's ε_eval
 def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("files", nargs="+", type=Path, help="demonstration or reference files")
     p.add_argument("--object", type=Path, help="object mesh for demonstrations that need one (OMOMO)")
+    from retarget.bvh import add_arguments
+
+    add_arguments(p)
 
 
 def is_reference_file(path: Path) -> bool:
@@ -72,12 +75,12 @@ def reference_summary(ref: Reference) -> list[tuple[str, str]]:
     return rows
 
 
-def demonstration_summary(path: Path, object_mesh: Path | None) -> list[tuple[str, str]]:
+def demonstration_summary(path: Path, object_mesh: Path | None, bvh=None) -> list[tuple[str, str]]:
     from retarget.demos import load_demonstration
     from retarget.meshes import as_trimesh, signed_distance
     from otr_gym.rotations import quat_apply_inverse
 
-    demo = load_demonstration(path, object_mesh=object_mesh)
+    demo = load_demonstration(path, object_mesh=object_mesh, bvh=bvh)
     rows = [
         ("kind", f"demonstration ({demo.source.get('format', '?')})"),
         ("frames", f"{demo.num_frames} @ {demo.fps:g} fps ({demo.duration_s:.2f} s)"),
@@ -117,7 +120,9 @@ def main(args: argparse.Namespace) -> int:
 
                 rows = summary_rows(DeployLog.load(path))
             else:
-                rows = demonstration_summary(path, args.object)
+                from retarget.bvh import options_from_args
+
+                rows = demonstration_summary(path, args.object, options_from_args(args))
         except (InvalidReferenceError, ValueError, FileNotFoundError) as exc:
             print(f"{path}: error: {exc}")
             status = 1

@@ -13,6 +13,7 @@ Readers (``load_demonstration`` dispatches on the file):
   at ``trans + J₀(β)``. SMPL-H files carry SMPL-H shape coefficients, which we read as the first
   ten SMPL-X coefficients (an approximation: the spaces differ, the leading components — size
   and girth — roughly agree);
+* BVH skeletal motion capture (``retarget.bvh``: skeleton families, units, up axis, body fit);
 * OMOMO in the InterMimic ``.pt`` layout (30 fps, z-up), with its object mesh. Part orientations
   come from the stored world body quaternions (right-multiplied by the fixed InterMimic -> SMPL-X
   frame change); the subject's shape is fitted to the stored joints.
@@ -325,16 +326,21 @@ def _from_arrays(data: dict[str, np.ndarray], origin: str) -> Demonstration:
 
 
 def load_demonstration(path: str | Path, object_mesh: str | Path | None = None, *,
-                       ground: bool = True) -> Demonstration:
+                       ground: bool = True, bvh=None) -> Demonstration:
     """Read any supported demonstration file (see the module docstring) into a validated Demonstration.
 
     ``object_mesh`` overrides the mesh lookup of OMOMO clips; ``ground`` puts the human's feet on
-    z = 0 (module docstring). Any problem raises InvalidDemonstrationError naming the file.
+    z = 0 (module docstring); ``bvh`` (``retarget.bvh.BvhOptions``) says how to read ``.bvh``
+    files (skeleton map, units, up axis). Any problem raises InvalidDemonstrationError naming the file.
     """
     path = Path(path)
     if not path.is_file():
         raise DemonstrationFileNotFoundError(f"{path}: no such demonstration file")
-    if path.suffix == ".pt":
+    if path.suffix.lower() == ".bvh":
+        from retarget.bvh import read_bvh
+
+        demo = read_bvh(path, bvh, ground)
+    elif path.suffix == ".pt":
         demo = _read_omomo(path, None if object_mesh is None else Path(object_mesh), ground)
     elif path.suffix == ".npz":
         data = _read_npz(path)
@@ -346,7 +352,7 @@ def load_demonstration(path: str | Path, object_mesh: str | Path | None = None, 
             _fail(str(path), f"unknown .npz layout (keys {sorted(data)}): neither our demonstration format "
                              "nor AMASS parameters (poses / root_orient+pose_body)")
     else:
-        _fail(str(path), f"unknown demonstration format {path.suffix!r} (expected .npz or .pt)")
+        _fail(str(path), f"unknown demonstration format {path.suffix!r} (expected .npz, .pt or .bvh)")
     demo.validate(str(path))
     return demo
 

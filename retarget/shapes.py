@@ -30,8 +30,8 @@ from retarget.meshes import (
     InvalidMeshError,
     TriMesh,
     as_trimesh,
-    check_encloses_volume,
     load_mesh,
+    object_mesh,
 )
 
 #: File types accepted for user meshes.
@@ -162,13 +162,13 @@ def canonical_mesh(shape: str) -> TriMesh:
 
 
 def load_shape_mesh(path: str | Path) -> TriMesh:
-    """A user mesh file, checked to enclose a volume (InvalidMeshError naming the file otherwise)."""
+    """A user mesh file (InvalidMeshError naming the file when it cannot be read); a surface that
+    encloses no volume is a shell (``retarget.meshes.object_mesh``, with a warning)."""
     path = Path(path)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise InvalidMeshError(f"{path}: substitute meshes must be {'/'.join(MESH_SUFFIXES)} files")
     mesh = load_mesh(path)
-    check_encloses_volume(mesh)
-    return mesh
+    return object_mesh(mesh.vertices, mesh.faces, mesh.name)
 
 
 # ------------------------------------------------------------------ frames

@@ -132,10 +132,10 @@ def grip_scores(result) -> dict[str, float]:
     return {"grip_dd_m": s.dd_m, "grip_recall": s.recall, "grip_precision": s.precision, "grip_jaccard": s.jaccard}
 
 
-def measure_variant(reference, demo) -> dict:
+def measure_variant(reference, demo, made=None) -> dict:
     """Protocol metrics of a variant's reference against the original demonstration, the
     solver-independent checks (penetration both ways on the robot's visual meshes, hand hold)
-    and the solver's timings."""
+    and, when this run made it (``made``: ``retarget.pipeline.Timing``), the solver's timings."""
     from retarget.evaluation.sequence import json_safe
     from retarget.metrics import evaluate_sequence
     from retarget.problem import resample_demonstration
@@ -148,9 +148,10 @@ def measure_variant(reference, demo) -> dict:
     # the robot's visual-mesh vertices into the object or the floor, and the object's surface into the robot
     checks["robot_penetration_m"] = max(checks["object_penetration_mesh_m"], checks["ground_penetration_mesh_m"])
     checks["penetration_m"] = max(checks["robot_penetration_m"], checks["object_in_robot_m"])
-    solver = reference.metadata.get("solver", {})
-    timing = {k: solver.get(k) for k in ("setup_s", "solve_s", "ms_per_frame", "frames")}
-    timing["retarget_s"] = solver.get("setup_s", np.nan) + solver.get("solve_s", np.nan)  # as measured when made
+    timing = {"setup_s": None, "solve_s": None, "ms_per_frame": None, "frames": reference.num_frames, "retarget_s": None}
+    if made is not None:  # retargeted by this run (a resumed variant's time was recorded in its first run)
+        timing.update(setup_s=made.setup_s, solve_s=made.solve_s, ms_per_frame=made.ms_per_frame,
+                      retarget_s=made.setup_s + made.solve_s)
     return json_safe({"metrics": metrics, "object_channels": result.details["object_channels"],
                       "object_pairs": result.details["object_pairs"], "checks": checks, "timing": timing})
 
@@ -161,10 +162,11 @@ def run_variant(job: VariantJob, cfg: RetargetConfig, substitution: Substitution
     message) with status 'done', 'warning' (recall below ``min_recall``) or 'failed' (never raises)."""
     try:
         from otr_gym.reference import Reference
-        from retarget.pipeline import retarget_demonstration
+        from retarget.pipeline import retarget_timed
 
         start = time.perf_counter()
         demo, swapped = _variant_demo(job, substitution)
+        made = None
         if job.output.is_file():
             reference = Reference.load(job.output)
         else:
@@ -180,13 +182,13 @@ def run_variant(job: VariantJob, cfg: RetargetConfig, substitution: Substitution
                     bar.update(1)
             # the native row is the plain retarget: the substitution machinery would also give back
             # the captured object, but with exact witnesses where the native solve uses the grid's
-            reference = retarget_demonstration(demo if job.spec.is_native else swapped, cfg, progress)
+            reference, made = retarget_timed(demo if job.spec.is_native else swapped, cfg, progress)
             if frame_bar:
                 bar.close()
             reference.metadata["substitution"] = {**swapped.source["substitution"],
                                                   "substitution_config": asdict(substitution)}
             reference.save(job.output)
-        record = measure_variant(reference, demo)
+        record = measure_variant(reference, demo, made)
         obj = swapped.source["substitution"]["object"]
         record.update({"variant": job.spec.name, "label": job.spec.label(obj), "shape": job.spec.shape,
                        "scale": list(job.spec.scale), "uniform_scale": job.spec.uniform, "object": obj,
@@ -203,7 +205,7 @@ def run_variant(job: VariantJob, cfg: RetargetConfig, substitution: Substitution
         write_json(job.record, record)
         summary = (f"{job.output} (object R {_pct(record['metrics']['object_recall'])}, grip R {_pct(grip)}, "
                    f"penetration {1e3 * record['checks']['penetration_m']:.2f} mm, "
-                   f"retarget {record['timing']['retarget_s']:.0f} s)")
+                   + (f"retarget {record['timing']['retarget_s']:.0f} s)" if made is not None else "made earlier)"))
         if warnings:
             return "warning", f"{job.spec.name}: {warnings[0]}; {summary}"
         return "done", summary

@@ -42,6 +42,7 @@ from envs.mdp.motion import MotionLibrary
 from envs.mdp.state import TrackingState
 from otr_gym import robot
 from otr_gym.rotations import quat_apply, quat_conj, quat_mul, quat_to_matrix, quat_yaw
+from otr_gym.scene import robot_model
 
 from agents.deploy.messages import RobotState
 
@@ -123,7 +124,7 @@ class RobotKinematics:
         import mujoco
 
         self._mj = mujoco
-        self.model = robot.load_mujoco_model(visual=False)
+        self.model = robot_model(visual=False)
         self.data = mujoco.MjData(self.model)
         self.body_ids = np.array([self.model.body(b).id for b in body_names])
 

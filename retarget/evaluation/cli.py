@@ -20,7 +20,7 @@ from pathlib import Path
 
 from retarget.evaluation.config import EvalConfig
 
-DEMO_SUFFIXES = (".pt", ".npz")
+DEMO_SUFFIXES = (".pt", ".npz", ".bvh")
 
 
 def _scale_arg(text: str) -> float | None:
@@ -39,9 +39,12 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("references", nargs="+", type=Path, metavar="REFERENCE",
                    help="reference .npz files or folders of them")
     p.add_argument("--demo", action="append", type=Path, required=True, metavar="DEMO",
-                   help="demonstration (OMOMO .pt, AMASS .npz, our .npz): once for all references, once per "
+                   help="demonstration (OMOMO .pt, AMASS .npz, BVH, our .npz): once for all references, once per "
                         "reference, or a folder matched by file name")
     p.add_argument("--object", type=Path, metavar="MESH", help="object mesh of the demonstration (OMOMO clips)")
+    from retarget.bvh import add_arguments
+
+    add_arguments(p)
     p.add_argument("--scale", type=_scale_arg, default=None, metavar="auto|FLOAT",
                    help="world scale of the references: 'auto' (default) recovers it from their trajectories")
     p.add_argument("--contacts-world", choices=("native", "reference"), default="native",
@@ -76,6 +79,7 @@ def pair_demonstrations(references: list[Path], demos: list[Path]) -> list[Path]
 
 def main(args: argparse.Namespace) -> int:
     from otr_gym.reference import InvalidReferenceError, Reference, list_references
+    from retarget.bvh import options_from_args
     from retarget.demos import InvalidDemonstrationError, load_demonstration
     from retarget.evaluation.alignment import AlignmentError
     from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
@@ -115,7 +119,8 @@ def main(args: argparse.Namespace) -> int:
         try:
             ref = Reference.load(ref_path)
             if demo_path not in loaded:
-                loaded = {demo_path: load_demonstration(demo_path, args.object)}  # keep one in memory
+                loaded = {demo_path: load_demonstration(demo_path, args.object,  # keep one in memory
+                                                        bvh=options_from_args(args))}
             result = evaluate_sequence(ref, loaded[demo_path], cfg, progress=progress, demo_source=str(demo_path))
         except expected as exc:
             print(f"otr eval: error: {exc}", file=sys.stderr)
