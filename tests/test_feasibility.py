@@ -111,23 +111,22 @@ def test_torques_match_mujoco_inverse_dynamics_of_the_same_motion():
     """Hovering (no contact) with every joint on a parabola: central differences are exact,
     so the joint torques must equal MuJoCo's ``mj_inverse`` (armature included) and the
     unsupported force the norm of its free-joint force."""
-    frames = 60
-    t = np.arange(frames) / FPS
+    frames = 40
+    tau = np.arange(frames) / (frames - 1) - 0.5  # normalised time in [-0.5, 0.5]
     qpos = _clip(frames)
     qpos[:, 2] += 0.6
     mid = 0.5 * (robot.JOINT_LOWER + robot.JOINT_UPPER)
-    span = 0.3 * (robot.JOINT_UPPER - robot.JOINT_LOWER)
+    half = 0.45 * (robot.JOINT_UPPER - robot.JOINT_LOWER)
     rng = np.random.default_rng(0)
-    acc = rng.uniform(-1, 1, robot.NUM_JOINTS) * 40.0  # rad/s²
-    vel = rng.uniform(-1, 1, robot.NUM_JOINTS) * 1.0
-    qpos[:, 7:] = mid + np.clip(vel * t[:, None] + 0.5 * acc * t[:, None] ** 2 - 0.5 * vel * t[-1], -span, span)
-    inside = np.all(np.abs(qpos[:, 7:] - mid) < span - 1e-9, axis=0)  # joints never clipped: on their parabola
+    c1, c2 = rng.uniform(-0.9, 0.9, (2, robot.NUM_JOINTS))  # |c1|/2 + |c2|/4 < 1: inside the limits
+    qpos[:, 7:] = mid + half * (c1 * tau[:, None] + c2 * tau[:, None] ** 2)
     r = check_feasibility(_ref(qpos), FeasibilityCfg(lowpass_hz=None))
+    assert np.abs(r.torque_nm).max() > 5.0  # not a trivially small comparison
 
     model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
     model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT  # random poses may touch themselves
     data = mujoco.MjData(model)
-    for f in (10, 30, 50):
+    for f in (5, 20, 34):
         data.qpos[:] = qpos[f]
         data.qvel[:] = 0.0
         data.qvel[6:] = (qpos[f + 1, 7:] - qpos[f - 1, 7:]) * FPS / 2
@@ -135,7 +134,7 @@ def test_torques_match_mujoco_inverse_dynamics_of_the_same_motion():
         data.qacc[6:] = (qpos[f + 1, 7:] - 2 * qpos[f, 7:] + qpos[f - 1, 7:]) * FPS**2
         mujoco.mj_inverse(model, data)
         assert not data.qfrc_constraint.any()
-        np.testing.assert_allclose(r.torque_nm[f][inside], data.qfrc_inverse[6:][inside], atol=1e-6)
+        np.testing.assert_allclose(r.torque_nm[f], data.qfrc_inverse[6:], atol=1e-6)
         assert r.unsupported_force_n[f] == pytest.approx(np.linalg.norm(data.qfrc_inverse[:3]), rel=1e-6)
 
 
