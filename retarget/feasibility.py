@@ -17,7 +17,8 @@ rate (50 fps, RL_SPEC §2: the clip is resampled at load exactly like this), fra
 * **sliding**: horizontal speed of the least-moving vertex of a foot on the ground (its lowest
   vertex within ``contact_height_m``; ``retarget.evaluation.feet.least_moving_speed``, so
   heel/toe pivots do not count, while a swing foot skimming the floor does: it would drag);
-* **flight**: frames with neither foot down, grouped into phases with their duration.
+* **flight**: frames with no part of the robot on the floor, grouped into phases with their
+  duration (hands, knees or any other link on the floor support a crawl like feet do).
 
 Inverse dynamics (Pinocchio). v and a are Lie-group finite differences of the configurations
 (``pin.difference``: the free-flyer twist in the pelvis frame, exact for a constant twist).
@@ -26,8 +27,9 @@ first (zero-phase Butterworth, ``lowpass_hz``) for accelerations and torques: di
 turns a retargeter's millimetre frame-to-frame jitter into accelerations of several g that the
 PD loop never follows (a 1 mm wobble at 50 fps is 0.5 g). Speeds, jumps and sliding use the raw
 motion. τ_rnea = RNEA(q, v, a) = M a + h includes the armature. The floor can only push: each sole
-point (the corners of the G1 foot capsules, ``otr_gym.robot_geometry``) within
-``contact_height_m`` of z = 0 carries a force in the linearised friction cone (4 edges,
+point (the corners of the G1 foot capsules, ``otr_gym.robot_geometry``; for every other link the
+lowest point of its collision capsules' end spheres) within ``contact_height_m`` of z = 0
+carries a force in the linearised friction cone (4 edges,
 coefficient μ), f = E λ, λ ≥ 0. The contact forces are the non-negative least-squares fit of
 the base rows, min ‖W(τ_rnea[:6] − (Jᵀ E λ)[:6])‖² + ε‖λ‖² (W weighs moments by 1/L to make
 them forces), so they supply as much of the base wrench as physics allows and never pull.
@@ -35,6 +37,9 @@ What they cannot supply is the *unsupported* wrench; the joint torques are
 τ = τ_rnea[6:] − (Jᵀ E λ)[6:], i.e. with the unsupported remainder applied at the pelvis (a
 "hand of god", flagged separately). This is the standard contact-consistent inverse dynamics
 of a floating base; plain RNEA would hold the pelvis instead and hide the stance-leg torques.
+
+The floor is the plane z = 0: a reference on terrain (Holosoma's crawl up a slope) shows up as
+flight where it leaves the plane.
 
 Severity of a frame = the largest ratio of a measure to its limit (flight counts as 1).
 ``FeasibilityReport.intervals`` are the runs of frames at severity ≥ 1; ``hardest`` picks the
@@ -109,6 +114,8 @@ class FeasibilityReport:
     torque_nm: np.ndarray  # (T, 29) contact-consistent inverse dynamics
     torque_ratio: np.ndarray  # (T, 29) |τ| / effort limit
     foot_force_w: np.ndarray  # (T, 2, 3) N, world: total floor force on each foot
+    other_force_w: np.ndarray  # (T, 3) N, world: floor force on every other link (hands, knees, …)
+    other_support: np.ndarray  # (T,) bool: a link other than the feet on the floor
     unsupported_force_n: np.ndarray  # (T,) N: base force the floor cannot supply
     unsupported_moment_nm: np.ndarray  # (T,) N·m
     stance: np.ndarray  # (T, 2) bool: the foot's lowest vertex within contact_height_m
@@ -125,8 +132,8 @@ class FeasibilityReport:
 
     @property
     def flight(self) -> np.ndarray:
-        """(T,) bool: neither foot on the ground."""
-        return ~self.stance.any(axis=1)
+        """(T,) bool: nothing on the ground (neither foot nor any other link)."""
+        return ~(self.stance.any(axis=1) | self.other_support)
 
     @property
     def unsupported_fraction(self) -> np.ndarray:
@@ -247,13 +254,15 @@ class _Model:
     pin_model: object
     sole_frames: tuple[tuple[int, ...], tuple[int, ...]]  # pinocchio frame ids per foot
     sole_points_b: tuple[np.ndarray, np.ndarray]  # (P, 3) in the ankle_roll_link frame
+    link_frames: tuple[tuple[int, float], ...]  # other links: (frame at a capsule end centre, radius)
     mass_kg: float
 
 
 @lru_cache(maxsize=1)
 def _model() -> _Model:
-    """The Pinocchio G1 with one operational frame per sole point: the corners (2-D convex
-    hull) of each foot's collision capsules, on their underside."""
+    """The Pinocchio G1 with one operational frame per sole point (the corners, 2-D convex
+    hull, of each foot's collision capsules, on their underside) and one per end-sphere centre
+    of every other collision capsule."""
     import pinocchio as pin
     from scipy.spatial import ConvexHull
 
@@ -273,8 +282,19 @@ def _model() -> _Model:
                                                 pin.FrameType.OP_FRAME)))
         frames.append(tuple(ids))
         points.append(corners)
+    links = []
+    for cap in collision_capsules():
+        if cap.body in robot.FEET:
+            continue
+        body = model.getFrameId(cap.body)
+        parent = model.frames[body]
+        for k, p in enumerate({tuple(cap.p0), tuple(cap.p1)}):
+            placement = parent.placement * pin.SE3(np.eye(3), np.asarray(p))
+            fid = model.addFrame(pin.Frame(f"{cap.name}_end{k}", parent.parentJoint, body, placement,
+                                           pin.FrameType.OP_FRAME))
+            links.append((fid, cap.radius))
     mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
-    return _Model(model, tuple(frames), tuple(points), mass)
+    return _Model(model, tuple(frames), tuple(points), tuple(links), mass)
 
 
 def _cone_edges(mu: float) -> np.ndarray:
@@ -316,6 +336,10 @@ def _velocity_acceleration(step: np.ndarray, dt: float) -> tuple[np.ndarray, np.
     return v, a
 
 
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def _contact_fit(base: np.ndarray, jac_base: np.ndarray, cfg: FeasibilityCfg) -> np.ndarray:
     """λ ≥ 0 (N along the cone edges) minimising ‖W(base − jac_base λ)‖² + ε‖λ‖² (NNLS on the
     stacked system)."""
@@ -352,6 +376,8 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
     torque = np.zeros((T, robot.NUM_JOINTS))
     accel_limit = np.zeros((T, robot.NUM_JOINTS))
     foot_force = np.zeros((T, 2, 3))
+    other_force = np.zeros((T, 3))
+    other_support = np.zeros(T, bool)
     unsup_f = np.zeros(T)
     unsup_m = np.zeros(T)
     for t in range(T):
@@ -367,13 +393,23 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
                     jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
                     cols.append(jac.T @ edges)  # (nv, 4): generalised force of each cone edge
                     owners.append(k)
+        for fid, radius in mdl.link_frames:
+            if data.oMf[fid].translation[2] - radius <= cfg.contact_height_m:
+                jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
+                # the sphere's lowest point, r below the centre: v = v_c + ω × (−r ẑ)
+                lowest = jac[:3] - _skew(np.array([0.0, 0.0, -radius])) @ jac[3:]
+                cols.append(lowest.T @ edges)
+                owners.append(2)
+                other_support[t] = True
         if cols:
             gen = np.concatenate(cols, axis=1)
             lam = _contact_fit(tau[:6], gen[:6], cfg)
             tau -= gen @ lam
             per_point = (edges @ lam.reshape(-1, 4).T).T  # (P, 3) world forces
+            owner = np.asarray(owners)
             for k in range(2):
-                foot_force[t, k] = per_point[np.asarray(owners) == k].sum(axis=0)
+                foot_force[t, k] = per_point[owner == k].sum(axis=0)
+            other_force[t] = per_point[owner == 2].sum(axis=0)
         torque[t] = tau[6:]
         unsup_f[t] = np.linalg.norm(tau[:3])
         unsup_m[t] = np.linalg.norm(tau[3:6])
@@ -387,7 +423,8 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
     return FeasibilityReport(
         source=str(reference.source), fps=cfg.fps, cfg=cfg, root_height_m=root[:, 2].copy(), root_jump_m=jump,
         joint_speed_ratio=speed_ratio, joint_accel_ratio=accel_ratio, torque_nm=torque,
-        torque_ratio=np.abs(torque) / robot.EFFORT_LIMIT, foot_force_w=foot_force, unsupported_force_n=unsup_f,
+        torque_ratio=np.abs(torque) / robot.EFFORT_LIMIT, foot_force_w=foot_force, other_force_w=other_force,
+        other_support=other_support, unsupported_force_n=unsup_f,
         unsupported_moment_nm=unsup_m, stance=stance, slide_speed_mps=slide, weight_n=weight)
 
 
@@ -424,7 +461,7 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     c = r.cfg
     lowpass = f"accelerations low-passed at {c.lowpass_hz:g} Hz" if c.lowpass_hz else "raw accelerations"
     lines = [f"dynamic feasibility at {r.fps:g} fps ({s['frames']} frames, {s['duration_s']:.2f} s; friction "
-             f"{c.friction:g}, foot down within {100 * c.contact_height_m:g} cm, {lowpass})"]
+             f"{c.friction:g}, floor z = 0, on it within {100 * c.contact_height_m:g} cm, {lowpass})"]
     j = s["jump"]
     lines.append(f"  {'jumps (pelvis off its path)':31s} peak {100 * j['peak_m']:.1f} cm (t {j['time_s']:.2f} s); "
                  f"{j['frames_over']} frames over {100 * c.jump_m:g} cm")
@@ -441,14 +478,15 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
                  f"over {100 * c.unsupported_fraction:.0f}%")
     d = s["stance_sliding"]
     if d["peak_mps"] is None:
-        lines.append(f"  {'stance sliding':31s} no foot ever on the ground")
+        lines.append(f"  {'sliding':31s} no foot ever on the ground")
     else:
-        lines.append(f"  {'stance sliding':31s} median {100 * d['median_mps']:.1f} cm/s, peak {100 * d['peak_mps']:.1f} "
+        lines.append(f"  {'sliding (foot on the ground)':31s} median {100 * d['median_mps']:.1f} cm/s, peak {100 * d['peak_mps']:.1f} "
                      f"cm/s ({d['foot']} foot, t {d['time_s']:.2f} s); {d['frames_over']} frames over "
                      f"{100 * c.slide_speed_mps:g} cm/s")
     fl = s["flight"]
     phases = ", ".join(f"{x:.2f}" for x in fl["durations_s"]) or "none"
-    lines.append(f"  {'flight':31s} {fl['phases']} phase(s), {fl['total_s']:.2f} s in total (s: {phases})")
+    lines.append(f"  {'flight (nothing on the ground)':31s} {fl['phases']} phase(s), {fl['total_s']:.2f} s in total "
+                 f"(s: {phases}); other links than the feet on the ground {r.other_support.sum()} frames")
     hard = r.hardest(worst)
     if not hard:
         lines.append("no frame reaches a limit")
@@ -489,6 +527,8 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
     ax.plot(t, 100 * r.unsupported_fraction, color="tab:red", lw=1.1, label="unsupported force")
     ax.plot(t, 100 * r.foot_force_w[:, 0, 2] / r.weight_n, lw=0.9, label="left foot Fz")
     ax.plot(t, 100 * r.foot_force_w[:, 1, 2] / r.weight_n, lw=0.9, label="right foot Fz")
+    if r.other_support.any():
+        ax.plot(t, 100 * r.other_force_w[:, 2] / r.weight_n, lw=0.9, label="other links Fz")
     ax.axhline(100 * r.cfg.unsupported_fraction, color="k", lw=0.8, ls="--")
     ax.set_ylabel("% of weight", fontsize=8)
     ax.legend(fontsize=7, loc="upper right", ncol=3)
@@ -498,8 +538,9 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
         speed = np.nan_to_num(r.slide_speed_mps[:, k], nan=0.0)
         sc = ax.scatter(t[on], np.full(on.sum(), k), c=100 * speed[on], cmap="plasma", vmin=0,
                         vmax=400 * r.cfg.slide_speed_mps, s=14, marker="s")
-    ax.set_yticks([0, 1], [f"{n} foot" for n in FOOT_NAMES], fontsize=8)
-    ax.set_ylim(-0.7, 1.7)
+    ax.scatter(t[r.other_support], np.full(r.other_support.sum(), 2), color="tab:gray", s=14, marker="s")
+    ax.set_yticks([0, 1, 2], [f"{n} foot" for n in FOOT_NAMES] + ["other link"], fontsize=8)
+    ax.set_ylim(-0.7, 2.7)
     fig.colorbar(sc, ax=list(axes), pad=0.005, fraction=0.015, extend="max").set_label(
         "foot sliding (cm/s), stance panel", fontsize=7)
     ax.set_ylabel("stance", fontsize=8)
