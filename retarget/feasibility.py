@@ -196,7 +196,7 @@ class FeasibilityReport:
         """The ``count`` worst frames at severity ≥ 1, at most one per ``peak_separation_s``."""
         sev = self.severity()
         runs = self.intervals
-        window = max(1, int(round(self.cfg.peak_separation_s * self.fps)))
+        window = max(1, round(self.cfg.peak_separation_s * self.fps))
         taken = np.zeros(self.num_frames, bool)
         out = []
         for f in np.argsort(-sev, kind="stable"):
@@ -460,8 +460,8 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     s = r.summary()
     c = r.cfg
     lowpass = f"accelerations low-passed at {c.lowpass_hz:g} Hz" if c.lowpass_hz else "raw accelerations"
-    lines = [f"dynamic feasibility at {r.fps:g} fps ({s['frames']} frames, {s['duration_s']:.2f} s; friction "
-             f"{c.friction:g}, floor z = 0, on it within {100 * c.contact_height_m:g} cm, {lowpass})"]
+    lines = [(f"dynamic feasibility at {r.fps:g} fps ({s['frames']} frames, {s['duration_s']:.2f} s; friction "
+              f"{c.friction:g}, floor z = 0, on it within {100 * c.contact_height_m:g} cm, {lowpass})")]
     j = s["jump"]
     lines.append(f"  {'jumps (pelvis off its path)':31s} peak {100 * j['peak_m']:.1f} cm (t {j['time_s']:.2f} s); "
                  f"{j['frames_over']} frames over {100 * c.jump_m:g} cm")
@@ -513,7 +513,7 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
 
     t = r.time_s
     regions = {"legs": slice(0, 12), "waist": slice(12, 15), "arms": slice(15, 29)}
-    fig, axes = plt.subplots(6, 1, figsize=(11, 11), sharex=True, layout="constrained")
+    fig, axes = plt.subplots(6, 1, figsize=(10, 10), sharex=True, layout="constrained")
     panels = ((axes[0], r.joint_speed_ratio, "|q̇| / velocity limit"),
               (axes[1], r.joint_accel_ratio, "|q̈| / (τmax / Mii)"),
               (axes[2], r.torque_ratio, "|τ| / effort limit"))
@@ -558,7 +558,7 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
         ax.grid(alpha=0.3)
     fig.suptitle(f"dynamic feasibility: {Path(r.source).name} (blue: flight, red: flagged)", fontsize=10)
     try:
-        return atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=100))
+        return atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=80))
     finally:
         plt.close(fig)
 

@@ -31,7 +31,7 @@ def two_rank_run(tmp_path_factory, walking_reference, standing_reference):
            "train", "--reference", str(walking_reference), str(standing_reference), "--num-envs", str(NUM_ENVS),
            "--device", "cpu", "--iterations", "5", "--max-minutes", "0.0001", "--log-dir", str(log_dir)]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600)
+    proc = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=600, check=False)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     (run,) = log_dir.iterdir()
     ranks = [torch.load(out / f"rank{r}.pt", weights_only=False) for r in (0, 1)]
@@ -82,7 +82,7 @@ def test_the_budget_stops_both_ranks_together_and_rank_0_alone_writes_the_run(tw
 
 
 def test_a_two_rank_checkpoint_resumes_in_one_process(two_rank_run):
-    run, (a, _), _ = two_rank_run
+    run, _, _ = two_rank_run
     torch.set_num_threads(1)
     assert cli.main(["train", "--resume", str(run), "--iterations", "1", "--device", "cpu"]) == 0
     ckpt = torch.load(run / "model_1.pt", map_location="cpu", weights_only=False)

@@ -13,7 +13,12 @@ import pytest
 from otr_gym import robot
 from otr_gym.reference import Reference
 from retarget import verify
-from retarget.feasibility import GRAVITY, FeasibilityCfg, check_feasibility, format_report
+from retarget.feasibility import (
+    GRAVITY,
+    FeasibilityCfg,
+    check_feasibility,
+    format_report,
+)
 
 FPS = 50.0
 ELBOW = robot.JOINT_NAMES.index("left_elbow_joint")

@@ -28,7 +28,7 @@ def _poison(task, kind: str) -> None:
     if kind == "warp":
         task.backend.qpos[BAD, 2] = math.nan  # a zero-copy view of the warp state
     else:
-        task.backend._datas[BAD].qpos[2] = math.nan  # noqa: SLF001  (the MuJoCo data itself)
+        task.backend._datas[BAD].qpos[2] = math.nan  # the MuJoCo data itself
 
 
 @pytest.mark.parametrize("kind", ["warp", "mujoco"])
@@ -43,7 +43,7 @@ def test_a_nan_in_one_world_resets_only_that_world(kind, standing_reference):
         actions = 0.3 * torch.randn(NUM_ENVS, 29, generator=gen)
         if step == 3:
             _poison(hurt, kind)
-        obs_c, rew_c, term_c, _, _ = clean.step(actions)
+        _, rew_c, term_c, _, _ = clean.step(actions)
         obs_h, rew_h, term_h, _, info = hurt.step(actions)
         # the other worlds never notice
         assert torch.equal(hurt.backend.qpos[others], clean.backend.qpos[others]), step
@@ -70,7 +70,7 @@ def test_an_observation_that_comes_out_non_finite_is_zeroed_and_its_world_reset_
     task.step(zeros)
     broken = task.state.action.clone()
     broken[BAD, 0] = math.nan  # as a policy with a broken output would leave its last action (±inf is clipped)
-    obs = task._finite_observations(replace(task.state, action=broken))  # noqa: SLF001
+    obs = task._finite_observations(replace(task.state, action=broken))
     assert all(torch.isfinite(o).all() for o in obs.values())
     last_action = task.obs_dims["policy"] - 29  # the policy group's last term
     assert float(obs["policy"][BAD, last_action]) == 0.0
