@@ -77,8 +77,12 @@ class FeasibilityCfg:
     lowpass_hz: float | None = 6.0
     #: Moments are divided by this length (m) to weigh them like forces in the contact fit.
     moment_length_m: float = 0.5
-    #: Relative weight of ‖λ‖² in the contact fit (picks the smallest forces among equals).
+    #: Weight of ‖λ‖² in the contact fit (N⁻²·N²: picks the smallest forces among equals) for
+    #: the feet, and for every other link (hands, knees): 100× more, so the fit leans on a hand
+    #: only where the feet cannot carry the motion (a 5 N·m wrist holding body weight is a
+    #: finding only if the feet could not have).
     force_regularization: float = 1e-6
+    other_link_regularization: float = 1e-4
     #: Flags: stance sliding above this speed (m/s); unsupported base force above this fraction
     #: of the weight (the ratios to the joint limits flag at 1).
     slide_speed_mps: float = 0.05
@@ -340,14 +344,14 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _contact_fit(base: np.ndarray, jac_base: np.ndarray, cfg: FeasibilityCfg) -> np.ndarray:
-    """λ ≥ 0 (N along the cone edges) minimising ‖W(base − jac_base λ)‖² + ε‖λ‖² (NNLS on the
-    stacked system)."""
+def _contact_fit(base: np.ndarray, jac_base: np.ndarray, reg: np.ndarray, cfg: FeasibilityCfg) -> np.ndarray:
+    """λ ≥ 0 (N along the cone edges) minimising ‖W(base − jac_base λ)‖² + Σ εᵢλᵢ² (NNLS on the
+    stacked system; ``reg`` the εᵢ)."""
     from scipy.optimize import nnls
 
     n = jac_base.shape[1]
     w = np.array([1, 1, 1] + [1.0 / cfg.moment_length_m] * 3)
-    a = np.vstack([w[:, None] * jac_base, np.sqrt(cfg.force_regularization) * np.eye(n)])
+    a = np.vstack([w[:, None] * jac_base, np.diag(np.sqrt(reg))])
     b = np.concatenate([w * base, np.zeros(n)])
     lam, _ = nnls(a, b, maxiter=50 * n)
     return lam
@@ -403,10 +407,11 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
                 other_support[t] = True
         if cols:
             gen = np.concatenate(cols, axis=1)
-            lam = _contact_fit(tau[:6], gen[:6], cfg)
+            owner = np.asarray(owners)
+            reg = np.repeat(np.where(owner == 2, cfg.other_link_regularization, cfg.force_regularization), 4)
+            lam = _contact_fit(tau[:6], gen[:6], reg, cfg)
             tau -= gen @ lam
             per_point = (edges @ lam.reshape(-1, 4).T).T  # (P, 3) world forces
-            owner = np.asarray(owners)
             for k in range(2):
                 foot_force[t, k] = per_point[owner == k].sum(axis=0)
             other_force[t] = per_point[owner == 2].sum(axis=0)

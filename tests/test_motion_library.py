@@ -7,6 +7,7 @@ times), and a file that is not a reference."""
 from __future__ import annotations
 
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -224,3 +225,29 @@ def test_box_library_shares_one_object_set_or_is_refused(box_reference, box_refe
     assert rc == 2
     err = capsys.readouterr().err
     assert "crate.npz" in err and "one object set per clip library" in err
+
+
+def test_a_library_run_resumes_with_its_clips_and_sampler(library_run, tmp_path):
+    run = shutil.copytree(library_run, tmp_path / library_run.name)
+    saved = torch.load(run / "model_1.pt", map_location="cpu", weights_only=False)
+    assert cli.main(["train", "--resume", str(run), "--iterations", "1", "--device", "cpu"]) == 0
+    scalars = read_scalars(run)
+    assert scalars["clip/hover/mpjpe_mm"][0] == [0, 1, 2]
+    record = runs.run_config(run)
+    assert record["reference_info"]["labels"] == ["hover", "stand"] and len(record["sessions"]) == 2
+    # the resumed sampler started from the saved failure statistics, not from zero
+    rate = saved["infos"]["training_state"]["env"]["failure_rate"]
+    assert rate.sum() > 0
+    resumed = torch.load(run / "model_2.pt", map_location="cpu", weights_only=False)
+    after = resumed["infos"]["training_state"]["env"]["failure_rate"]
+    # every bin at least its saved rate decayed over the 24 new steps (from zero it would hold only new failures)
+    assert torch.all(after >= (1 - 0.001) ** 24 * rate - 1e-7)
+
+
+def test_play_records_the_chosen_clip_of_a_library(library_run, tmp_path):
+    from agents.play import play
+
+    out = play(library_run, tmp_path / "hover.mp4", seconds=0.1, width=96, height=64, clip="hover")
+    assert out["clip"] == "hover" and (tmp_path / "hover.mp4").stat().st_size > 0
+    with pytest.raises(ValueError, match="not a clip of the library"):
+        play(library_run, tmp_path / "x.mp4", clip="nope")
