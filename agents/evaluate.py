@@ -21,6 +21,11 @@ clip give a success *rate* that measures robustness.
 
 Given a run folder, every checkpoint is evaluated (the env is built once) and ``--plot``
 draws MPJPE and success against the checkpoint iteration; given a checkpoint file, only it.
+
+A motion library (several clips) is reported per clip (a table) and overall: success over all
+envs, MPJPE frame-weighted. Clips that fail to load are reported by name and skipped
+(``agents.library``); a world whose physics diverges counts as a failure and its non-finite
+frame is left out of the MPJPE.
 """
 
 from __future__ import annotations
@@ -35,11 +40,13 @@ from tensordict import TensorDict
 
 from agents import runs
 from agents.devices import resolve_device
+from agents.library import clip_labels, load_library
 from agents.metrics import EpisodeAccumulator, ObjectEpisodeMetrics, summarize
 from agents.policy import TrainedPolicy, load_policy
 from agents.vecenv import make_vec_env
 from envs.mdp.metrics import mpjpe_root_relative
-from otr_gym.reference import InvalidReferenceError, list_references
+from envs.task import NON_FINITE
+from otr_gym.reference import InvalidReferenceError
 
 #: The evaluation episode ends with the clip (on_clip_end "truncate"), never by time-out first.
 NO_TIMEOUT_S = 1.0e6
@@ -70,17 +77,16 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
     max_steps = int(vec.motion.clip_length.max()) + 1
     for _ in range(max_steps):
         actions = policy.act(TensorDict(dict(obs), batch_size=[n], device=vec.device))
-        obs, _, terminated, truncated, _ = vec.step(actions)
+        obs, _, terminated, truncated, info = vec.step(actions)
         alive = ~acc.finished
-        acc.add_frame(mpjpe_root_relative(vec.tracking_state))
+        acc.add_frame(mpjpe_root_relative(vec.tracking_state), ~info["terminations"][NON_FINITE])
         if objects is not None:
             objects.add_frame(vec.tracking_state, alive)
             objects.end_step(vec.tracking_state, alive & truncated & ~terminated)
         acc.end_step(terminated, truncated)
         if acc.all_finished:
             break
-    names = [Path(name).stem for name in vec.motion.names]
-    return summarize(acc.per_env(), clip_ids, names, objects)
+    return summarize(acc.per_env(), clip_ids, clip_labels(list(vec.motion.names)), objects)
 
 
 def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None, num_envs: int | None = None,
@@ -93,12 +99,14 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
     first = load_policy(ckpts[-1], torch_device)
     if reference is None:
         reference = first.run_config["reference"]
+    overrides = eval_env_overrides(first.train_cfg.env, randomize)
+    library = load_library(reference, first.train_cfg.task, overrides)
     if num_envs is None:
-        num_envs = len(list_references(reference)) * (256 if randomize else 1)
+        num_envs = len(library.references) * (256 if randomize else 1)
     if num_envs < 1:
         raise ValueError(f"--num-envs must be >= 1, got {num_envs}")
-    env = make_vec_env(first.train_cfg.task, reference, num_envs, str(torch_device),
-                       eval_env_overrides(first.train_cfg.env, randomize), evaluation=not randomize, seed=seed)
+    env = make_vec_env(first.train_cfg.task, list(library.references), num_envs, str(torch_device), overrides,
+                       evaluation=not randomize, seed=seed)
     vec = env.unwrapped
     results = []
     for ckpt in ckpts:
@@ -111,11 +119,13 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
             line += (f"  object {result['object_pos_error_cm']:5.1f} cm (p95 {result['object_pos_error_p95_cm']:5.1f}), "
                      f"{result['object_ori_error_deg']:5.1f} deg")
         print(f"{line}  ({result['envs']} envs, {result['frames']} frames)")
+        if len(result["clips"]) > 1:
+            print(format_clip_table(result["clips"]))
     env.close()
-    ref = Path(reference)
     return {
         "run": ckpts[-1].run_dir.name,
-        "reference": {"name": ref.name if ref.is_dir() else ref.stem, "path": str(ref.resolve())},
+        "reference": {"name": library.name, "path": library.source,
+                      "skipped": [{"clip": c.path, "error": c.error} for c in library.skipped]},
         "protocol": {"randomize": randomize, "num_envs": num_envs, "seed": seed, "device": str(torch_device),
                      "start_frame": 0, "action": "deterministic mean", "mpjpe": "root-relative, 14 bodies, mm",
                      "objects": "position error world cm (mean over moving objects), orientation deg; "
@@ -125,11 +135,25 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
     }
 
 
+def format_clip_table(clips: list[dict]) -> str:
+    """One line per clip: success, MPJPE, envs, frames (and the object error for the box task)."""
+    width = max(len(c["clip"]) for c in clips)
+    lines = [f"    {'clip':<{width}}  success    MPJPE (mm)  envs  frames"]
+    for c in clips:
+        line = (f"    {c['clip']:<{width}}  {100 * c['success_rate']:6.1f} %  {c['mpjpe_mm']:9.1f}  "
+                f"{c['envs']:>5} {c['frames']:>7}")
+        if c.get("object_pos_error_cm") is not None:
+            line += f"  object {c['object_pos_error_cm']:.1f} cm"
+        lines.append(line)
+    return "\n".join(lines)
+
+
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="run folder (every checkpoint) or a model_<it>.pt checkpoint")
-    parser.add_argument("--reference", help="reference .npz or folder of them (default: the run's own)")
-    parser.add_argument("--num-envs", type=int, help="parallel envs (default: one per clip; 256 per clip "
-                        "with --randomize)")
+    parser.add_argument("--reference", nargs="+", metavar="REF", help="reference .npz files, folders or clip lists "
+                        "(default: the run's own library)")
+    parser.add_argument("--num-envs", type=int, help="parallel envs, env i plays clip i mod C (default: one per "
+                        "clip; 256 per clip with --randomize)")
     parser.add_argument("--device", help="cuda, cuda:K or cpu (default: cuda if available)")
     parser.add_argument("--randomize", action="store_true", help="keep domain randomisation and observation "
                         "noise (pushes off) to measure robustness")

@@ -36,9 +36,10 @@ class EpisodeAccumulator:
         self.terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         self.finished = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
 
-    def add_frame(self, mpjpe_m: torch.Tensor) -> None:
-        """MPJPE (N,) of the current frame; envs whose episode already ended are ignored."""
-        alive = ~self.finished
+    def add_frame(self, mpjpe_m: torch.Tensor, valid: torch.Tensor | None = None) -> None:
+        """MPJPE (N,) of the current frame; envs whose episode already ended, and frames of
+        ``valid`` False (a world whose physics diverged), are ignored."""
+        alive = ~self.finished if valid is None else ~self.finished & valid
         self.mpjpe_sum_m += torch.where(alive, mpjpe_m.to(torch.float64), 0.0)
         self.frames += alive.long()
 
@@ -90,6 +91,65 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
         **(objects.summary() if objects is not None else {}),
         "clips": clips,
     }
+
+
+class ClipRolloutStats:
+    """Per-clip training statistics over one rollout, kept on the device (no host sync per step).
+
+    A *segment* is the stretch of one clip an env tracks from a (re)start until a termination,
+    the clip's end or a time-out (the env's ``info["segment"]``). Per clip c:
+
+    - ``success_rate``: of the segments on c that ended in the rollout, the fraction that did
+      not end by a termination (clip end or time-out);
+    - ``mpjpe_mm``: root-relative MPJPE over every env-step spent on c (finite worlds only);
+    - ``episode_length_s``: mean length of those segments (s);
+    - ``start_probability``: the adaptive sampler's total start probability of c's bins.
+
+    ``flush`` returns them as TensorBoard tags ``clip/<label>/<name>`` and clears the sums; in a
+    distributed run the sums are all-reduced first, so every rank logs the global values.
+    """
+
+    _FIELDS = ("steps", "mpjpe_sum_m", "ended", "failed", "segment_frames")
+
+    def __init__(self, labels: list[str], step_dt: float, device: torch.device | str):
+        self.labels = list(labels)
+        self.step_dt = float(step_dt)
+        self.sums = torch.zeros(len(self._FIELDS), len(labels), dtype=torch.float64, device=device)
+
+    def add_step(self, clip: torch.Tensor, mpjpe_m: torch.Tensor, valid: torch.Tensor, ended: torch.Tensor,
+                 failed: torch.Tensor, segment_frames: torch.Tensor) -> None:
+        """One env step: (N,) clip of each env, its MPJPE (m), finite flag, segment end, failure
+        (a termination) and the segment's frames so far."""
+        ended = ended.bool()
+        values = torch.stack([valid.double(), torch.where(valid, mpjpe_m.double(), 0.0), ended.double(),
+                              (ended & failed.bool()).double(), torch.where(ended, segment_frames.double(), 0.0)])
+        self.sums.index_add_(1, clip.long(), values)
+
+    def flush(self, start_probability: torch.Tensor | None = None) -> dict[str, float]:
+        """Tags of the rollout (clips without data are left out) and reset. ``start_probability``
+        (C,) is logged as given (the sampler is identical on every rank)."""
+        sums = reduce_sum(self.sums.clone())
+        steps, mpjpe, ended, failed, frames = sums.cpu().numpy()
+        out: dict[str, float] = {}
+        for c, label in enumerate(self.labels):
+            tag = f"clip/{label}/"
+            if steps[c] > 0:
+                out[tag + "mpjpe_mm"] = float(mpjpe[c] / steps[c] * M_TO_MM)
+            if ended[c] > 0:
+                out[tag + "success_rate"] = float(1.0 - failed[c] / ended[c])
+                out[tag + "episode_length_s"] = float(frames[c] / ended[c] * self.step_dt)
+        if start_probability is not None:
+            for label, p in zip(self.labels, start_probability.tolist(), strict=True):
+                out[f"clip/{label}/start_probability"] = float(p)
+        self.sums.zero_()
+        return out
+
+
+def reduce_sum(x: torch.Tensor) -> torch.Tensor:
+    """``x`` summed over the ranks of a torch.distributed run (unchanged in a single process)."""
+    if torch.distributed.is_available() and torch.distributed.is_initialized():
+        torch.distributed.all_reduce(x, op=torch.distributed.ReduceOp.SUM)
+    return x
 
 
 CONTACT_FORCE_N = 1.0  # an object "touches" a support when their contact force exceeds this

@@ -28,17 +28,25 @@ from otr_gym.reference import InvalidReferenceError  # noqa: E402
 
 
 def play(run_or_checkpoint, video: str | Path, reference: str | Path | None = None, seconds: float | None = None,
-         width: int = 640, height: int = 480) -> dict:
-    """Record one evaluation episode to ``video`` (mp4, atomically); returns its outcome."""
+         width: int = 640, height: int = 480, clip: str | None = None) -> dict:
+    """Record one evaluation episode to ``video`` (mp4, atomically) of the library's clip
+    ``clip`` (a label, ``agents.library.clip_labels``; default the first); returns its outcome."""
     import imageio.v2 as imageio
 
     import otr_gym  # noqa: F401  (registers the environments)
+    from agents.library import clip_labels, load_library
     from envs.config import load_env_config
 
     policy = load_policy(run_or_checkpoint, "cpu")
-    reference = reference or policy.run_config["reference"]
-    cfg = load_env_config(policy.train_cfg.task, overrides=eval_env_overrides(policy.train_cfg.env, randomize=False))
-    env = gymnasium.make(policy.train_cfg.task, reference=reference, render_mode="rgb_array", cfg=cfg,
+    overrides = eval_env_overrides(policy.train_cfg.env, randomize=False)
+    library = load_library(reference or policy.run_config["reference"], policy.train_cfg.task, overrides)
+    labels = clip_labels([r.source for r in library.references])
+    if clip is not None and clip not in labels:
+        raise ValueError(f"--clip {clip!r}: not a clip of the library (clips: {', '.join(labels)})")
+    index = labels.index(clip) if clip is not None else 0
+    chosen = library.references[index]
+    cfg = load_env_config(policy.train_cfg.task, overrides=overrides)
+    env = gymnasium.make(policy.train_cfg.task, reference=chosen, render_mode="rgb_array", cfg=cfg,
                          evaluation=True, width=width, height=height)
     fps = env.metadata["render_fps"]
     max_steps = None if seconds is None else int(round(seconds * fps))
@@ -55,13 +63,15 @@ def play(run_or_checkpoint, video: str | Path, reference: str | Path | None = No
                 steps += 1
     env.close()
     return {"video": str(video), "frames": steps + 1, "fps": fps, "terminated": terminated,
-            "clip_completed": bool(truncated and not terminated)}
+            "clip_completed": bool(truncated and not terminated), "clip": labels[index]}
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("run", help="run folder (its latest checkpoint) or a model_<it>.pt checkpoint")
     parser.add_argument("--video", required=True, help="output .mp4")
-    parser.add_argument("--reference", help="reference .npz (default: the run's own; a folder plays its first clip)")
+    parser.add_argument("--reference", nargs="+", metavar="REF", help="reference .npz files, folders or clip lists "
+                        "(default: the run's own library)")
+    parser.add_argument("--clip", help="which clip of the library to play, by label (default: the first)")
     parser.add_argument("--seconds", type=float, help="stop after this long (default: the whole clip)")
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=480)
@@ -69,7 +79,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     try:
-        out = play(args.run, args.video, args.reference, args.seconds, args.width, args.height)
+        out = play(args.run, args.video, args.reference, args.seconds, args.width, args.height, args.clip)
     except (runs.RunError, InvalidReferenceError, ValueError, gymnasium.error.Error) as exc:
         print(f"otr play: {exc}", file=sys.stderr)
         return 2

@@ -72,6 +72,43 @@ def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
     return _save(fig, out_png)
 
 
+#: Per-clip training curves (``agents.metrics.ClipRolloutStats``): tag suffix -> panel title.
+CLIP_PANELS = {
+    "success_rate": "success rate (segments on the clip)",
+    "mpjpe_mm": "MPJPE, root-relative (mm)",
+    "episode_length_s": "segment length (s)",
+    "start_probability": "start probability (adaptive sampling)",
+}
+
+
+def plot_clip_curves(run_dir: str | Path, out_png: str | Path, smooth: int = 10) -> Path:
+    """One panel per ``CLIP_PANELS`` entry, one line per clip (``clip/<label>/…`` tags); lines
+    are running means over ``smooth`` iterations (segment statistics of one rollout are noisy)."""
+    import numpy as np
+
+    scalars = read_scalars(run_dir)
+    labels = sorted({tag.split("/")[1] for tag in scalars if tag.startswith("clip/") and tag.count("/") >= 2})
+    if not labels:
+        raise runs.RunError(f"{run_dir}: no per-clip curves (clip/<label>/...) in its TensorBoard events")
+    fig, axes = plt.subplots(2, 2, figsize=(11, 7), squeeze=False)
+    for ax, (name, title) in zip(axes.flat, CLIP_PANELS.items()):
+        for label in labels:
+            tag = f"clip/{label}/{name}"
+            if tag not in scalars:
+                continue
+            its, values = scalars[tag]
+            k = max(1, min(smooth, len(values)))
+            mean = np.convolve(values, np.ones(k) / k, mode="valid")
+            ax.plot(its[k - 1:], mean, lw=1.1, label=label)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("iteration")
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    fig.suptitle(f"{Path(run_dir).name}: per clip (running mean over {smooth} iterations)", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, out_png)
+
+
 def plot_evaluation(results: dict, out_png: str | Path) -> Path:
     """MPJPE and success rate against the checkpoint iteration (``evaluate`` results)."""
     evals = results["checkpoints"]
@@ -123,8 +160,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run", help="run folder")
     parser.add_argument("--png", required=True, help="output PNG of the training curves")
     parser.add_argument("--json", help="output JSON summary (iterations, median FPS, last values)")
+    parser.add_argument("--clips-png", help="output PNG of the per-clip curves (success, MPJPE, segment length, "
+                        "start probability)")
     args = parser.parse_args(argv)
     print(f"wrote {plot_training(args.run, args.png)}")
+    if args.clips_png:
+        print(f"wrote {plot_clip_curves(args.run, args.clips_png)}")
     if args.json:
         summary = training_summary(args.run)
         print(f"wrote {runs.write_json(args.json, summary)}: {summary['iterations']} iterations, "

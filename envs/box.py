@@ -44,7 +44,7 @@ from envs.mdp.objects import ObjectLibrary, fit_boxes_to_grasps
 from envs.mdp.randomization import randomize_objects
 from envs.mdp.state import ObjectState, TrackingState
 from envs.objects import GROUND_GEOM, SceneObjects, object_qpos, object_qvel, scene_objects
-from envs.task import TrackingTask
+from envs.task import TrackingTask, masked_mean
 from envs.tracking import TrackEnv, TrackVecEnv
 from otr_gym.rotations import quat_apply, quat_mul
 
@@ -130,13 +130,13 @@ class BoxTrackingTask(TrackingTask):
             static_pos_w=lib.static_pos_w, static_quat_w=lib.static_quat_w,
         ))
 
-    def _log(self, terms, fired, s: TrackingState) -> dict:
-        log = super()._log(terms, fired, s)
+    def _log(self, terms, fired, s: TrackingState, valid: torch.Tensor) -> dict:
+        log = super()._log(terms, fired, s, valid)
         o = s.objects
-        log["metric/object_pos_error_m"] = object_position_error_m(s).mean()
-        log["metric/object_ori_error_rad"] = object_orientation_error_rad(s).mean()
-        log["metric/hand_gate"] = o.hand_gate.mean()
-        log["metric/hand_force_n"] = o.hand_force_n.mean()
+        log["metric/object_pos_error_m"] = masked_mean(object_position_error_m(s), valid)
+        log["metric/object_ori_error_rad"] = masked_mean(object_orientation_error_rad(s), valid)
+        log["metric/hand_gate"] = masked_mean(o.hand_gate, valid)
+        log["metric/hand_force_n"] = masked_mean(o.hand_force_n, valid)
         return log
 
     def policy_metadata(self) -> dict:

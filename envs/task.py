@@ -13,6 +13,13 @@ Per ``step(actions)`` (N envs at once, torch on the backend's device, no host sy
    sampled frame) without ending the episode (RL_SPEC §2);
 5. with ``autoreset`` (vector env, same-step mode) finished envs are reset in the same call;
 6. observations of the new state.
+
+Non-finite worlds: a world whose physics diverged in the step (``backend.unstable``: NaN/inf or
+absurd values in qpos/qvel, or a state the simulator reset by itself) or whose observation came
+out non-finite at the previous step ends with the termination ``non_finite`` and is reset like
+any other; its reward is 0 and it is left out of the logged means, so one bad world never
+poisons the batch. Non-finite observation entries are zeroed when they are returned (the world
+is reset at the next step). ``log["metric/non_finite_worlds"]`` counts them per step.
 """
 
 from __future__ import annotations
@@ -31,6 +38,14 @@ from envs.mdp.state import TrackingState, aligned_targets, root_velocities_b
 from otr_gym import robot
 
 OBS_GROUPS = ("policy", "critic")
+NON_FINITE = "non_finite"  # the built-in termination of worlds whose physics or observation diverged
+
+
+def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean over the envs in ``valid`` (N,) bool of ``x`` (N, ...) (0-d; 0 when none is valid)."""
+    x = torch.where(valid.view(-1, *([1] * (x.dim() - 1))), x, torch.zeros_like(x))
+    per_env = x.reshape(x.shape[0], -1).mean(-1)
+    return per_env.sum() / valid.sum().clamp_min(1)
 
 
 def _resolve(module, name: str, kind: str):
@@ -67,6 +82,7 @@ class TrackingTask:
         self.command = MotionCommand(motion, self.num_envs, c, self.generator)
 
         self._action_scale = torch.as_tensor(robot.ACTION_SCALE, dtype=torch.float32, device=self.device)
+        self._obs_non_finite = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         self.action = torch.zeros(self.num_envs, self.num_actions, device=self.device)
         self.last_action = torch.zeros_like(self.action)
         self.episode_length_buf = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
@@ -104,7 +120,7 @@ class TrackingTask:
         self._restart(mask)
         self._clear_episode(mask)
         self.state = self.tracking_state = self._build_state()
-        return self.observations(self.state)
+        return self._finite_observations(self.state)
 
     def step(self, actions: torch.Tensor):
         """Advance all envs by one policy step. Returns (obs, reward (N,), terminated (N,) bool,
@@ -119,15 +135,21 @@ class TrackingTask:
         self.episode_length_buf += 1
 
         s = self.tracking_state = self._build_state()
-        fired = {name: fn(s, **params) for name, fn, params in self._terminations}
+        bad = self.backend.unstable | self._obs_non_finite
+        valid = ~bad
+        fired = {name: fn(s, **params) & valid for name, fn, params in self._terminations}
+        fired[NON_FINITE] = bad
         terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         for flag in fired.values():
             terminated |= flag
-        terms = {name: fn(s, **params) * (weight * self.step_dt) for name, fn, weight, params in self._rewards}
-        reward = torch.stack(list(terms.values())).sum(0) if terms else torch.zeros(self.num_envs, device=self.device)
+        zero = torch.zeros(self.num_envs, device=self.device)
+        terms = {name: torch.where(valid, fn(s, **params) * (weight * self.step_dt), zero)
+                 for name, fn, weight, params in self._rewards}
+        reward = torch.stack(list(terms.values())).sum(0) if terms else zero
 
         self.command.record_failures(terminated)
         self.command.update_failure_rate()
+        segment_clip, segment_frames = self.command.clip, self.command.frame - self.command.start_frame
         clip_ended = self.command.advance()
         truncated = self.episode_length_buf >= self.max_episode_length
         if self.cfg.command.on_clip_end == "truncate":
@@ -140,18 +162,22 @@ class TrackingTask:
             "time_outs": truncated,
             "success": self._success(terminated, truncated, clip_ended),
             "terminations": fired,
-            "log": self._log(terms, fired, s),
+            "log": self._log(terms, fired, s, valid),
+            # the stretch of clip each env tracked since its last (re)start: on which clip, how
+            # many frames so far, and whether it ended now (termination, truncation, clip end)
+            "segment": {"clip": segment_clip, "frames": segment_frames, "ended": done | clip_ended},
         }
         if self.autoreset:
             if self.cfg.final_obs:
-                extras["final_obs"] = self.observations(self._build_state())
+                final = self.observations(self._build_state())
+                extras["final_obs"] = {g: torch.nan_to_num(o, nan=0.0, posinf=0.0, neginf=0.0) for g, o in final.items()}
                 extras["_final_obs"] = done
             restart = restart | done
         self._restart(restart)
         if self.autoreset:
             self._clear_episode(done)
         self.state = self._build_state()
-        return self.observations(self.state), reward, terminated, truncated, extras
+        return self._finite_observations(self.state), reward, terminated, truncated, extras
 
     def observations(self, s: TrackingState) -> dict[str, torch.Tensor]:
         """{"policy": (N, 154), "critic": (N, 286)} with the default config; each term with a
@@ -170,6 +196,15 @@ class TrackingTask:
                 parts.append(x)
             out[group] = torch.cat(parts, dim=-1).clamp(-cfg.clip, cfg.clip)
         return out
+
+    def _finite_observations(self, s: TrackingState) -> dict[str, torch.Tensor]:
+        """``observations`` with non-finite entries zeroed; their worlds are reset at the next step."""
+        obs = self.observations(s)
+        bad = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        for o in obs.values():
+            bad |= ~torch.isfinite(o).all(dim=-1)
+        self._obs_non_finite = bad
+        return {g: torch.nan_to_num(o, nan=0.0, posinf=0.0, neginf=0.0) for g, o in obs.items()}
 
     # ------------------------------------------------------------ spec for export / evaluation
     def policy_metadata(self) -> dict:
@@ -246,12 +281,17 @@ class TrackingTask:
             action=self.action, last_action=self.last_action, default_joint_pos=self.default_joint_pos,
         )
 
-    def _log(self, terms: dict[str, torch.Tensor], fired: dict[str, torch.Tensor], s: TrackingState) -> dict:
-        """Means over envs as 0-d device tensors (call ``.item()`` only when writing a log)."""
-        log = {f"reward/{n}": v.mean() for n, v in terms.items()}
+    def _log(self, terms: dict[str, torch.Tensor], fired: dict[str, torch.Tensor], s: TrackingState,
+             valid: torch.Tensor) -> dict:
+        """Means over the ``valid`` (finite) envs as 0-d device tensors (call ``.item()`` only
+        when writing a log)."""
+        log = {f"reward/{n}": masked_mean(v, valid) for n, v in terms.items()}
         log.update({f"termination/{n}": v.float().mean() for n, v in fired.items()})
-        log["metric/anchor_pos_error_m"] = torch.linalg.norm(s.ref_anchor_pos_w - s.anchor_pos_w, dim=-1).mean()
-        log["metric/body_pos_error_m"] = torch.linalg.norm(s.ref_body_pos_aligned_w - s.body_pos_w, dim=-1).mean()
-        log["metric/joint_pos_error_rad"] = torch.abs(s.ref_joint_pos - s.joint_pos).mean()
+        log["metric/anchor_pos_error_m"] = masked_mean(torch.linalg.norm(s.ref_anchor_pos_w - s.anchor_pos_w, dim=-1),
+                                                       valid)
+        log["metric/body_pos_error_m"] = masked_mean(torch.linalg.norm(s.ref_body_pos_aligned_w - s.body_pos_w, dim=-1),
+                                                     valid)
+        log["metric/joint_pos_error_rad"] = masked_mean(torch.abs(s.ref_joint_pos - s.joint_pos), valid)
         log["metric/sampling_entropy"] = self.command.sampling_entropy()
+        log["metric/non_finite_worlds"] = fired[NON_FINITE].sum()
         return log

@@ -35,7 +35,10 @@ Interface for training / evaluation / export (vector env):
   ``obs_layout`` (term names and dims per group), ``step_dt`` (0.02 s);
 - ``episode_length_buf`` (N,) long, settable (e.g. random initial lengths), ``max_episode_length`` (500);
 - ``step`` info: ``time_outs`` (N,) bool (truncations, for bootstrapping), ``success`` (N,)
-  bool (the episode ended without a termination), ``terminations`` {name: (N,) bool},
+  bool (the episode ended without a termination), ``terminations`` {name: (N,) bool} (with the
+  built-in ``non_finite``: worlds whose physics diverged, reset like any other termination),
+  ``segment`` {"clip", "frames", "ended": (N,)} (the stretch of clip tracked since the last
+  (re)start, for per-clip statistics),
   ``log`` {"reward/<term>", "termination/<term>", "metric/…": 0-d tensors, means over envs};
 - command state: ``command.clip`` (N,) and ``command.frame`` (N,), the *target* frame (shown
   in the observation; the next step's rewards compare the robot with it), ``command.start_frame``

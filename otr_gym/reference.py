@@ -468,8 +468,14 @@ def _check_unit(src: str, key: str, q: np.ndarray) -> None:
             f"{src}: {key} is not unit-norm (|q| = {1 + err[idx]:.4f} at index {tuple(int(i) for i in idx)})")
 
 
+#: Suffixes of clip-list files: one reference path per line, relative to the list's folder.
+LIST_SUFFIXES = (".txt", ".list")
+
+
 def list_references(path: str | Path) -> list[Path]:
-    """A single file, or every ``*.npz`` of a folder (sorted); a missing path raises."""
+    """A single file, every ``*.npz`` of a folder (sorted), or the entries of a list file
+    (``.txt``/``.list``: one file or folder per line, relative to the list's folder; blank lines
+    and ``#`` comments ignored), each expanded the same way; a missing path raises naming it."""
     path = Path(path)
     if path.is_dir():
         files = sorted(path.glob("*.npz"))
@@ -478,4 +484,19 @@ def list_references(path: str | Path) -> list[Path]:
         return files
     if not path.is_file():
         raise InvalidReferenceError(f"{path}: no such reference file or folder")
+    if path.suffix.lower() in LIST_SUFFIXES:
+        out: list[Path] = []
+        for n, line in enumerate(path.read_text().splitlines(), 1):
+            entry = line.split("#", 1)[0].strip()
+            if not entry:
+                continue
+            item = Path(entry).expanduser()
+            item = item if item.is_absolute() else path.parent / item
+            try:
+                out.extend(list_references(item))
+            except InvalidReferenceError as exc:
+                raise InvalidReferenceError(f"{path}, line {n}: {exc}") from exc
+        if not out:
+            raise InvalidReferenceError(f"{path}: clip list names no reference")
+        return out
     return [path]

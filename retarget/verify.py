@@ -176,19 +176,33 @@ def object_in_robot_depth(reference, spacing_m: float = 0.005, prefilter_m: floa
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m retarget.verify REFERENCE --demo DEMO [--object MESH]``: print the checks."""
+    """``python -m retarget.verify REFERENCE [--demo DEMO] [--object MESH] [--feasibility-png PNG]``: print
+    the checks against the demonstration (with ``--demo``) and the dynamic feasibility
+    (``retarget.feasibility``)."""
     import argparse
 
     from otr_gym.reference import Reference
-    from retarget.demos import load_demonstration
-    from retarget.problem import resample_demonstration
 
     p = argparse.ArgumentParser(prog="python -m retarget.verify", description=__doc__.split("\n\n")[0])
     p.add_argument("reference", help="retargeted reference .npz (native mode)")
-    p.add_argument("--demo", required=True, help="the demonstration it was made from")
+    p.add_argument("--demo", help="the demonstration it was made from (for the kinematic checks)")
     p.add_argument("--object", default=None, help="object mesh when the demonstration file lacks it")
+    p.add_argument("--feasibility-png", help="write the dynamic-feasibility timeline (PNG) here")
+    p.add_argument("--feasibility-json", help="write the dynamic-feasibility summary (JSON) here")
     args = p.parse_args(argv)
     reference = Reference.load(args.reference)
+    if args.demo is not None:
+        _print_checks(reference, args)
+    from retarget.feasibility import write_feasibility
+
+    write_feasibility(reference, args.feasibility_png, args.feasibility_json)
+    return 0
+
+
+def _print_checks(reference, args) -> None:
+    from retarget.demos import load_demonstration
+    from retarget.problem import resample_demonstration
+
     demo = resample_demonstration(load_demonstration(args.demo, args.object), reference.fps)
     limit_mm = 0.3
     checks = {**check_reference(reference, demo).as_dict(), "object_in_robot_m": object_in_robot_depth(reference)}
@@ -197,7 +211,6 @@ def main(argv: list[str] | None = None) -> int:
         if key.endswith(("penetration_mesh_m", "in_robot_m")):
             note = "ok" if value <= limit_mm * 1e-3 else f"beyond {limit_mm} mm"
         print(f"{key:28s} {value:.6g} {note}")
-    return 0
 
 
 if __name__ == "__main__":

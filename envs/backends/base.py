@@ -19,6 +19,11 @@ import mujoco
 import torch
 
 
+#: |qpos| or |qvel| beyond this (m, rad, m/s, rad/s) means the world's physics diverged: no G1
+#: state comes near it, and it keeps squares and exponentials of the MDP terms finite.
+MAX_ABS_STATE = 1.0e6
+
+
 class PhysicsBackend(ABC):
     """Batched MuJoCo-model physics with torch views of the state.
 
@@ -87,6 +92,12 @@ class PhysicsBackend(ABC):
         """(N, P) per ``contact_pair_keys``: the largest norm (N) of the net force between the
         pair's two objects over the substeps of the last ``step`` (zero after ``reset``)."""
         return self._contact_forces[:, len(self.contact_body_names):]
+
+    @property
+    def unstable(self) -> torch.Tensor:
+        """(N,) bool: worlds whose state after the last ``step`` is non-finite or beyond
+        ``MAX_ABS_STATE`` (diverged physics). The MDP resets them (``envs.task``)."""
+        return ~((self.qpos.abs() < MAX_ABS_STATE).all(-1) & (self.qvel.abs() < MAX_ABS_STATE).all(-1))
 
     # ------------------------------------------------------------ actions
     @abstractmethod

@@ -3,6 +3,10 @@ per world, stepped in turn. Meant for one or a few worlds: rendering, evaluation
 
 MuJoCo computes in float64; after every ``step``/``reset`` the state is copied once into
 float32 torch tensors (CPU), the dtype the MDP uses on every backend.
+
+MuJoCo answers a NaN or overflowing state by resetting that world to the model's qpos0 and
+counting a warning (mjWARN_BADQPOS/BADQVEL/BADQACC); such a silent teleport is reported as
+``unstable`` too, so the MDP ends and restarts the episode instead of tracking from qpos0.
 """
 
 from __future__ import annotations
@@ -16,6 +20,12 @@ import torch
 
 from envs.backends.base import PhysicsBackend
 from envs.backends.model import contact_sensor_adr
+
+_DIVERGED = (mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL, mujoco.mjtWarning.mjWARN_BADQACC)
+
+
+def _divergence_count(d: mujoco.MjData) -> int:
+    return sum(int(d.warning[w].number) for w in _DIVERGED)
 
 
 class MuJoCoBackend(PhysicsBackend):
@@ -35,6 +45,7 @@ class MuJoCoBackend(PhysicsBackend):
         self._body_ipos0 = model.body_ipos.copy()
         self._body_inertia0 = model.body_inertia.copy()
         self._contact = torch.zeros(num_worlds, len(self._contact_sensor_names))
+        self._reset_by_mujoco = torch.zeros(num_worlds, dtype=torch.bool)
         self._pull()
 
     # ------------------------------------------------------------ views
@@ -66,18 +77,26 @@ class MuJoCoBackend(PhysicsBackend):
     def _contact_forces(self) -> torch.Tensor:
         return self._contact
 
+    @property
+    def unstable(self) -> torch.Tensor:
+        return super().unstable | self._reset_by_mujoco
+
     # ------------------------------------------------------------ actions
     def step(self, ctrl: torch.Tensor) -> None:
         ctrl = ctrl.detach().to("cpu", torch.float64).numpy()
         forces = np.zeros((self.num_worlds, len(self._contact_sensor_names)))
+        reset_by_mujoco = np.zeros(self.num_worlds, bool)
         for w, (m, d) in enumerate(zip(self._models, self._datas, strict=True)):
             d.ctrl[:] = ctrl[w]
+            diverged = _divergence_count(d)
             for _ in range(self.decimation):
                 mujoco.mj_step(m, d)
                 f = np.linalg.norm(d.sensordata[self._force_cols].reshape(-1, 3), axis=-1)
                 np.maximum(forces[w], f, out=forces[w])
+            reset_by_mujoco[w] = _divergence_count(d) > diverged
             self._refresh(m, d)
         self._contact = torch.from_numpy(forces).float()
+        self._reset_by_mujoco = torch.from_numpy(reset_by_mujoco)
         self._pull()
 
     def reset(self, env_ids: torch.Tensor, qpos: torch.Tensor, qvel: torch.Tensor) -> None:
@@ -90,6 +109,7 @@ class MuJoCoBackend(PhysicsBackend):
             d.qacc_warmstart[:] = 0.0
             self._refresh(m, d)
         self._contact[torch.from_numpy(mask)] = 0.0
+        self._reset_by_mujoco[torch.from_numpy(mask)] = False
         self._pull()
 
     def write_qvel(self, qvel: torch.Tensor) -> None:

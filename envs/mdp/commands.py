@@ -123,6 +123,11 @@ class MotionCommand:
             p += self.cfg.adaptive_lambda**k * weight[torch.minimum(index + k, last_bin)]
         return p / p.sum()
 
+    def clip_probabilities(self) -> torch.Tensor:
+        """(C,) total start probability of each clip's bins."""
+        p = self.sampling_probabilities()
+        return torch.zeros(self.motion.num_clips, device=self.device).index_add_(0, self.bin_clip, p)
+
     def sampling_entropy(self) -> torch.Tensor:
         """Normalised entropy (0-d, in [0, 1]) of the start distribution (HS logs it)."""
         p = self.sampling_probabilities()

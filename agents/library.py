@@ -1,0 +1,104 @@
+"""The clip library of a run: what ``--reference`` names, which clips load, which are skipped.
+
+``--reference`` takes one or more items, each a reference ``.npz``, a folder of them or a
+clip-list file (``.txt``/``.list``, ``otr_gym.reference.list_references``). Every clip is
+loaded and prepared exactly as the environment will (``envs.mdp.motion.prepared_references``:
+tracked bodies present, resampled to the policy rate, long enough). A clip that fails is
+reported by name with the reason and skipped; a library left without clips raises. The run
+records both lists (``config.yaml``: ``reference_info.clips`` / ``reference_info.skipped``).
+
+Clips of one library may differ in length and frame rate: each is resampled to 50 fps at
+load. OTR-G1-BoxTrack-v0 simulates one object set, so its library must share it: clips whose
+objects differ are refused when the environment is built (``envs.objects.scene_objects``).
+"""
+
+from __future__ import annotations
+
+import sys
+import zipfile
+from collections import Counter
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from envs.config import load_env_config
+from envs.mdp.motion import prepared_references
+from otr_gym.reference import InvalidReferenceError, Reference, list_references
+
+#: What a broken clip file can raise while it is read and prepared.
+_LOAD_ERRORS = (InvalidReferenceError, OSError, ValueError, KeyError, zipfile.BadZipFile)
+
+
+@dataclass(frozen=True)
+class SkippedClip:
+    path: str
+    error: str
+
+
+@dataclass(frozen=True)
+class ClipLibrary:
+    spec: tuple[str, ...]  # the --reference items as given, made absolute
+    references: tuple[Reference, ...]  # clips that load, prepared (50 fps), in library order
+    skipped: tuple[SkippedClip, ...]
+
+    @property
+    def name(self) -> str:
+        """Run-folder name part: the item's stem (a folder's name), ``<first>+<n>`` for several."""
+        stems = [Path(s).name if Path(s).is_dir() else Path(s).stem for s in self.spec]
+        return stems[0] if len(stems) == 1 else f"{stems[0]}+{len(stems) - 1}"
+
+    @property
+    def source(self) -> str | list[str]:
+        """What to pass to the environment again (evaluation, resume): the spec."""
+        return self.spec[0] if len(self.spec) == 1 else list(self.spec)
+
+    def info(self) -> dict:
+        """The run record's ``reference_info``."""
+        return {"name": self.name, "path": self.source, "clips": [r.source for r in self.references],
+                "labels": clip_labels([r.source for r in self.references]),
+                "skipped": [{"clip": s.path, "error": s.error} for s in self.skipped]}
+
+
+def reference_spec(reference: str | Path | Sequence[str | Path]) -> tuple[str, ...]:
+    items = [reference] if isinstance(reference, (str, Path)) else list(reference)
+    if not items:
+        raise InvalidReferenceError("no reference given")
+    return tuple(str(Path(i).expanduser().resolve()) for i in items)
+
+
+def load_library(reference: str | Path | Sequence[str | Path], task: str, env_overrides: dict | None = None,
+                 report: bool = True) -> ClipLibrary:
+    """Every clip named by ``reference`` prepared for ``task``'s tracked bodies and rate; those
+    that fail are skipped with their reason (printed to stderr with ``report``)."""
+    spec = reference_spec(reference)
+    cmd = load_env_config(task, overrides=env_overrides or None).command
+    files = [f for item in spec for f in list_references(item)]
+    good: list[Reference] = []
+    skipped: list[SkippedClip] = []
+    for path in files:
+        try:
+            good.extend(prepared_references(path, cmd.tracked_bodies, cmd.fps, cmd.min_clip_frames))
+        except _LOAD_ERRORS as exc:
+            message = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
+            skipped.append(SkippedClip(str(path), message))
+    if report:
+        for s in skipped:
+            print(f"skipped clip: {s.error}", file=sys.stderr)
+    if not good:
+        raise InvalidReferenceError(f"no clip of {', '.join(spec)} could be loaded ({len(skipped)} skipped)")
+    return ClipLibrary(spec, tuple(good), tuple(skipped))
+
+
+def clip_labels(sources: Sequence[str]) -> list[str]:
+    """Short unique names of clips for logs and tables: the file stem, prefixed by its folder
+    where two stems collide, suffixed ``#k`` if still ambiguous."""
+    stems = [Path(s).stem for s in sources]
+    counts = Counter(stems)
+    labels = [f"{Path(s).parent.name}/{stem}" if counts[stem] > 1 else stem for s, stem in zip(sources, stems)]
+    counts = Counter(labels)
+    seen: Counter = Counter()
+    out = []
+    for label in labels:
+        seen[label] += 1
+        out.append(f"{label}#{seen[label]}" if counts[label] > 1 else label)
+    return out

@@ -1,0 +1,253 @@
+"""Motion libraries: one policy trained on several clips (``otr train --reference A B DIR LIST``).
+
+Generated clips only: a standing clip, a procedural walk at 30 fps (resampled at load), a
+clip whose reference floats 0.6 m above the floor (the robot falls: terminations at known
+times), and a file that is not a reference."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from agents import runs
+from agents.library import clip_labels, load_library
+from agents.metrics import ClipRolloutStats
+from agents.plots import plot_clip_curves, read_scalars
+from agents.procedural import WalkSpec, standing_reference, walking_reference
+from envs.config import CommandCfg
+from envs.mdp.commands import MotionCommand
+from envs.mdp.motion import MotionLibrary
+from otr_gym import cli, robot
+from otr_gym.reference import InvalidReferenceError, Reference
+
+TRACK = "OTR-G1-Track-v0"
+BOX = "OTR-G1-BoxTrack-v0"
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_torch_thread():
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
+
+
+def _hover(seconds: float = 1.5) -> Reference:
+    qpos = np.tile(robot.default_qpos(), (int(seconds * 50) + 1, 1))
+    qpos[:, 2] += 0.6
+    return Reference.from_qpos(qpos, 50.0)
+
+
+@pytest.fixture(scope="module")
+def library_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("library")
+    standing_reference(duration_s=2.0).save(d / "stand.npz")
+    _hover(3.0).save(d / "hover.npz")
+    (d / "broken.npz").write_bytes(b"not a reference")
+    return d
+
+
+@pytest.fixture(scope="module")
+def library_run(library_dir, tmp_path_factory):
+    """Two iterations on the folder (two good clips, one broken), random initial episode
+    lengths off so that only clip ends and terminations end segments."""
+    log_dir = tmp_path_factory.mktemp("runs")
+    rc = cli.main(["train", "--reference", str(library_dir), "--num-envs", "16", "--device", "cpu",
+                   "--iterations", "2", "--log-dir", str(log_dir), "--set", "init_at_random_ep_len=false"])
+    assert rc == 0
+    (run,) = log_dir.iterdir()
+    return run
+
+
+def test_a_two_clip_library_trains_with_per_clip_metrics(library_run, library_dir):
+    info = runs.run_config(library_run)["reference_info"]
+    assert info["labels"] == ["hover", "stand"]
+    # the broken file is reported by name, with why, and left out
+    assert [s["clip"] for s in info["skipped"]] == [str(library_dir / "broken.npz")]
+    assert "not a readable .npz" in info["skipped"][0]["error"]
+    scalars = read_scalars(library_run)
+    for clip in ("hover", "stand"):
+        for name in ("mpjpe_mm", "success_rate", "episode_length_s", "start_probability"):
+            assert scalars[f"clip/{clip}/{name}"][0] == [0, 1], (clip, name)
+    for it in (0, 1):
+        total = scalars["clip/hover/start_probability"][1][it] + scalars["clip/stand/start_probability"][1][it]
+        assert total == pytest.approx(1.0, abs=1e-6)
+    # the floating reference: the robot falls 0.25 m below its anchor within ~0.25 s, so a
+    # segment there succeeds only when it starts in the clip's last 0.25 s (the exact figures
+    # are checked in test_clip_statistics_of_a_rollout_are_exact)
+    hover, stand = (scalars[f"clip/{c}/episode_length_s"][1] for c in ("hover", "stand"))
+    assert max(hover) < 0.4 and min(stand) > max(hover)
+    assert sum(scalars["clip/hover/success_rate"][1]) < sum(scalars["clip/stand/success_rate"][1])
+    # falls are failures: the sampler moved probability towards the floating clip
+    assert scalars["clip/hover/start_probability"][1][1] > 0.5
+
+
+def test_evaluation_reports_every_clip_and_the_overall_figures(library_run, tmp_path, capsys):
+    out = tmp_path / "eval.json"
+    assert cli.main(["evaluate", str(library_run), "--device", "cpu", "--last", "--json", str(out)]) == 0
+    printed = capsys.readouterr()
+    table = printed.out[printed.out.index("MPJPE (mm)  envs"):]
+    assert "hover" in table and "stand" in table
+    assert "broken.npz" in printed.err  # skipped again, by name
+    final = json.loads(out.read_text())["final"]
+    clips = {c["clip"]: c for c in final["clips"]}
+    assert set(clips) == {"hover", "stand"}
+    assert clips["hover"]["success_rate"] == 0.0 and clips["hover"]["frames"] < 20
+    frames = sum(c["frames"] for c in clips.values())
+    assert final["frames"] == frames
+    assert final["mpjpe_mm"] == pytest.approx(sum(c["mpjpe_mm"] * c["frames"] for c in clips.values()) / frames)
+    assert final["success_rate"] == pytest.approx(np.mean([c["success_rate"] for c in clips.values()]))
+
+
+def test_per_clip_curves_are_drawn(library_run, tmp_path):
+    png = plot_clip_curves(library_run, tmp_path / "clips.png")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_clip_statistics_of_a_rollout_are_exact():
+    stats = ClipRolloutStats(["a", "b"], step_dt=0.02, device="cpu")
+    clip = torch.tensor([0, 0, 1, 1])
+    ok = torch.ones(4, dtype=torch.bool)
+    # step 1: env 1 (clip a) fails after 10 frames; env 3 (clip b) ends its clip after 30 frames
+    stats.add_step(clip, torch.tensor([0.01, 0.03, 0.02, 0.04]), ok, torch.tensor([False, True, False, True]),
+                   torch.tensor([False, True, False, False]), torch.tensor([5, 10, 7, 30]))
+    # step 2: env 2's physics diverged (not valid, failed); its MPJPE must not count
+    stats.add_step(clip, torch.tensor([0.01, 0.01, float("nan"), 0.02]), ok & torch.tensor([1, 1, 0, 1]).bool(),
+                   torch.tensor([False, False, True, False]), torch.tensor([False, False, True, False]),
+                   torch.tensor([6, 1, 8, 1]))
+    out = stats.flush(torch.tensor([0.25, 0.75]))
+    assert out["clip/a/mpjpe_mm"] == pytest.approx(1000 * (0.01 + 0.03 + 0.01 + 0.01) / 4)
+    assert out["clip/b/mpjpe_mm"] == pytest.approx(1000 * (0.02 + 0.04 + 0.02) / 3)
+    assert out["clip/a/success_rate"] == 0.0 and out["clip/b/success_rate"] == 0.5
+    assert out["clip/a/episode_length_s"] == pytest.approx(10 * 0.02)
+    assert out["clip/b/episode_length_s"] == pytest.approx((30 + 8) / 2 * 0.02)
+    assert out["clip/b/start_probability"] == 0.75
+    assert stats.flush() == {}  # sums cleared
+
+
+def test_sampler_bins_follow_injected_failures():
+    """Two clips of 100 and 250 frames (3 and 6 bins). Failures injected in bin 4 of the second
+    clip for 200 steps: the EMA, the start distribution and the sampled starts follow exactly."""
+    refs = [standing_reference(duration_s=99 / 50), standing_reference(duration_s=249 / 50)]
+    motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
+    cfg = CommandCfg(reset_noise_enabled=False)
+    n = 4000
+    cmd = MotionCommand(motion, n, cfg, torch.Generator().manual_seed(0))
+    assert cmd.bin_count.tolist() == [3, 6]
+    before = cmd.sampling_probabilities()
+    torch.testing.assert_close(before[:3], torch.full((3,), 0.5 / 3))  # each clip the same mass r, split evenly
+    torch.testing.assert_close(before[3:], torch.full((6,), 0.5 / 6))
+
+    cmd.clip = torch.ones(n, dtype=torch.long)
+    cmd.frame = torch.full((n,), 180)  # bin ⌊180·6/250⌋ = 4 of clip 1, global bin 3 + 4 = 7
+    failing = torch.zeros(n, dtype=torch.bool)
+    failing[:5] = True  # 5 failures per step
+    steps = 200
+    for _ in range(steps):
+        cmd.record_failures(failing)
+        cmd.update_failure_rate()
+    f = 5.0 * (1.0 - (1.0 - cfg.adaptive_alpha) ** steps)
+    expected = torch.tensor([0.1 / 3] * 3 + [0.1 / 6] * 6)
+    expected[7] += f
+    expected /= expected.sum()
+    torch.testing.assert_close(cmd.failure_rate[7], torch.tensor(f), rtol=1e-5, atol=0)
+    torch.testing.assert_close(cmd.sampling_probabilities(), expected, rtol=1e-5, atol=0)
+    torch.testing.assert_close(cmd.clip_probabilities(), torch.stack([expected[:3].sum(), expected[3:].sum()]),
+                               rtol=1e-5, atol=0)
+
+    cmd.resample(torch.ones(n, dtype=torch.bool))
+    in_bin = (cmd.clip == 1) & (cmd.start_frame * 6 // 248 == 4)
+    p = float(expected[7])
+    assert abs(in_bin.float().mean().item() - p) < 4 * np.sqrt(p * (1 - p) / n)
+
+
+def test_clips_of_different_rates_and_lengths_mix_at_50_fps(tmp_path):
+    walk = walking_reference(WalkSpec(steps=4, fps=30.0)).save(tmp_path / "walk30.npz")
+    stand = standing_reference(duration_s=1.0).save(tmp_path / "stand50.npz")
+    lib = load_library([walk, stand], TRACK)
+    raw = Reference.load(walk)
+    assert [r.fps for r in lib.references] == [50.0, 50.0]
+    assert lib.references[0].num_frames == int(np.floor((raw.num_frames - 1) / 30.0 * 50.0 + 1e-9)) + 1
+    assert lib.references[1].num_frames == 51
+    assert lib.name == "walk30+1"
+
+
+def test_a_clip_list_names_clips_relative_to_itself(tmp_path, library_dir):
+    (tmp_path / "sub").mkdir()
+    standing_reference(duration_s=1.0).save(tmp_path / "sub" / "a.npz")
+    listing = tmp_path / "clips.txt"
+    listing.write_text(f"# my library\nsub/a.npz\n\n{library_dir / 'hover.npz'}  # absolute\n")
+    lib = load_library(listing, TRACK, report=False)
+    assert [r.source for r in lib.references] == [str(tmp_path / "sub" / "a.npz"), str(library_dir / "hover.npz")]
+    listing.write_text("sub/missing.npz\n")
+    with pytest.raises(InvalidReferenceError, match=r"clips.txt, line 1: .*missing.npz"):
+        load_library(listing, TRACK)
+
+
+def test_a_library_without_a_loadable_clip_is_refused_by_name(tmp_path, capsys):
+    (tmp_path / "bad.npz").write_bytes(b"nope")
+    assert cli.main(["train", "--reference", str(tmp_path), "--device", "cpu", "--log-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.npz" in err and "no clip of" in err
+
+
+def test_duplicate_clip_stems_get_unique_labels():
+    assert clip_labels(["x/walk.npz", "y/walk.npz", "y/run.npz"]) == ["x/walk", "y/walk", "run"]
+    assert clip_labels(["x/walk.npz", "x/walk.npz"]) == ["x/walk#1", "x/walk#2"]
+
+
+def test_box_library_shares_one_object_set_or_is_refused(box_reference, box_reference_geometry, tmp_path, capsys):
+    import gymnasium
+
+    import otr_gym  # noqa: F401
+    from agents.vecenv import RslRlVecEnv
+
+    env = gymnasium.make_vec(BOX, num_envs=4, vectorization_mode="vector_entry_point", device="cpu",
+                             reference=[box_reference, box_reference_geometry], seed=0)
+    vec = RslRlVecEnv(env, num_steps_per_env=2, seed=0)
+    assert vec.clip_labels == ["box_annotated", "box_plain"]
+    log = {}
+    for _ in range(2):
+        log = vec.step(torch.zeros(4, env.unwrapped.num_actions))[3]["log"]
+    assert {"clip/box_annotated/mpjpe_mm", "clip/box_plain/mpjpe_mm"} <= set(log)
+    env.close()
+
+    ref = Reference.load(box_reference)
+    renamed = replace(ref, objects=[replace(o, name="crate" if o.name == "box" else o.name) for o in ref.objects])
+    other = renamed.save(tmp_path / "crate.npz")
+    rc = cli.main(["train", "--task", BOX, "--reference", str(box_reference), str(other), "--device", "cpu",
+                   "--num-envs", "2", "--iterations", "1", "--log-dir", str(tmp_path)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "crate.npz" in err and "one object set per clip library" in err
+
+
+def test_a_library_run_resumes_with_its_clips_and_sampler(library_run, tmp_path):
+    run = shutil.copytree(library_run, tmp_path / library_run.name)
+    saved = torch.load(run / "model_1.pt", map_location="cpu", weights_only=False)
+    assert cli.main(["train", "--resume", str(run), "--iterations", "1", "--device", "cpu"]) == 0
+    scalars = read_scalars(run)
+    assert scalars["clip/hover/mpjpe_mm"][0] == [0, 1, 2]
+    record = runs.run_config(run)
+    assert record["reference_info"]["labels"] == ["hover", "stand"] and len(record["sessions"]) == 2
+    # the resumed sampler started from the saved failure statistics, not from zero
+    rate = saved["infos"]["training_state"]["env"]["failure_rate"]
+    assert rate.sum() > 0
+    resumed = torch.load(run / "model_2.pt", map_location="cpu", weights_only=False)
+    after = resumed["infos"]["training_state"]["env"]["failure_rate"]
+    # every bin at least its saved rate decayed over the 24 new steps (from zero it would hold only new failures)
+    assert torch.all(after >= (1 - 0.001) ** 24 * rate - 1e-7)
+
+
+def test_play_records_the_chosen_clip_of_a_library(library_run, tmp_path):
+    from agents.play import play
+
+    out = play(library_run, tmp_path / "hover.mp4", seconds=0.1, width=96, height=64, clip="hover")
+    assert out["clip"] == "hover" and (tmp_path / "hover.mp4").stat().st_size > 0
+    with pytest.raises(ValueError, match="not a clip of the library"):
+        play(library_run, tmp_path / "x.mp4", clip="nope")
