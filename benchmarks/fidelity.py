@@ -13,9 +13,9 @@ objects, self-penetration p95, drift and ms/frame.
 Penetration is the deepest G1 visual-mesh vertex below the floor / inside an object over the
 clip, plus the link's mesh error bound (``otr_gym.true_surface``): an upper bound for Unitree's
 original surface. ``--true-surface`` scores with the original meshes themselves (downloaded
-once from the mjlab wheel) instead of the shipped ones. ms/frame is the solve time recorded in
-each reference's metadata (setup excluded; the machine's load is not controlled here, use
-``benchmarks/retarget_speed.py`` for speed figures).
+once from the mjlab wheel) instead of the shipped ones. ms/frame is this run's solve time per
+output frame (setup excluded; with ``--references``, what the files recorded, if anything; the
+machine's load is not controlled here, use ``benchmarks/retarget_speed.py`` for speed figures).
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ def unit_margins(units) -> np.ndarray:
     return np.array([max(margin[lk] for lk in u.links) for u in units])
 
 
-def score(ref_path: Path, demo_path: Path, true_surface: bool) -> dict[str, float]:
+def score(ref_path: Path, demo_path: Path, true_surface: bool, ms_per_frame: float | None) -> dict[str, float]:
     from otr_gym.reference import Reference
     from retarget.demos import load_demonstration
     from retarget.evaluation.sequence import evaluate_sequence
@@ -74,9 +74,11 @@ def score(ref_path: Path, demo_path: Path, true_surface: bool) -> dict[str, floa
     res = evaluate_sequence(ref, demo, units=units)
     margins = np.zeros(len(units)) if true_surface else unit_margins(units)
     ground, objects = penetration(res, margins)
-    solver = ref.metadata.get("solver", {}) if isinstance(ref.metadata, dict) else {}
+    if ms_per_frame is None:  # references made elsewhere: the solve time they recorded, if any
+        solver = ref.metadata.get("solver", {}) if isinstance(ref.metadata, dict) else {}
+        ms_per_frame = float(solver.get("ms_per_frame", float("nan")))
     return {**res.metrics, "ground_penetration_m": ground, "object_penetration_m": objects,
-            "ms_per_frame": float(solver.get("ms_per_frame", float("nan")))}
+            "ms_per_frame": ms_per_frame}
 
 
 def format_table(rows: dict[str, dict[str, float]]) -> str:
@@ -114,17 +116,20 @@ def main(argv: list[str] | None = None) -> int:
     for clip in args.clips:
         demo_path = args.data / clip
         name = Path(clip).stem
+        ms_per_frame = None
         if args.references is not None:
             ref_path = args.references / f"{name}.npz"
         else:
             from retarget.demos import load_demonstration
-            from retarget.pipeline import load_config, retarget_demonstration
+            from retarget.pipeline import load_config, retarget_timed
 
             ref_path = args.out / f"{name}.npz"
             start = time.perf_counter()
-            retarget_demonstration(load_demonstration(demo_path), load_config()).save(ref_path)
+            reference, timing = retarget_timed(load_demonstration(demo_path), load_config())
+            reference.save(ref_path)
+            ms_per_frame = timing.ms_per_frame
             print(f"{name}: retargeted in {time.perf_counter() - start:.1f} s", flush=True)
-        rows[name] = score(ref_path, demo_path, args.true_surface)
+        rows[name] = score(ref_path, demo_path, args.true_surface, ms_per_frame)
         print(f"{name}: scored", flush=True)
     print(format_table(rows))
     if args.json is not None:

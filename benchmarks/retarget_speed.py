@@ -38,6 +38,7 @@ GROUPS = {
     "proximity (pose probes, SDF queries)": ("robot_channels", "object_guards"),
     "residual + constraint rows": ("robot_rows", "object_rows", "style_rows", "self_collision",
                                    "constraint_selection"),
+    "self-collision of the meshes": ("self_meshes",),
     "QP assembly (H, g, C, bounds)": ("qp_assembly",),
     "ProxQP solve": ("qp_solve",),
     "demonstration targets (per frame)": ("demo_triples",),

@@ -97,6 +97,12 @@ class SolverConfig:
     #: b_cor (our choice): deviation from the demonstrated pose, (m, rad). The paper's boxes
     #: drift 3–27 cm; 0.35 m / 0.6 rad bounds that with margin.
     object_deviation_box: tuple[float, float] = (0.35, 0.6)
+    #: Ours: per frame, the robot's base (pelvis origin, world) may move by the demonstrated
+    #: pelvis displacement ± this (m; 8 mm at 50 fps = 0.4 m/s of velocity deviation). Without it
+    #: a base that lags while a foot is planted jumps back when the foot lifts (AMASS jog: 9.4 cm
+    #: off its path in one frame, 56 frames over 1 cm); with 2 cm: 3.0 cm, 34 frames; with 8 mm:
+    #: 1.4 cm, 10 frames, at the same ground contact quality (``retarget.feasibility``).
+    base_step_m: float = 0.008
     #: Our choice: an object closer than this to a robot link is "held" and the warm start of
     #: the next frame moves it rigidly with the robot (``warm_start``).
     hold_distance_m: float = 0.01
@@ -194,6 +200,9 @@ class Problem:
     self_pairs: np.ndarray
     self_points: ProbeSet  # visual-mesh vertices thinned for self-collision (``robot_self_points``)
     self_clusters: PointClusters  # their clusters
+    #: (L,) contact unit of each link: links sharing human parts (``retarget.evaluation.units``),
+    #: links without a part their own unit
+    contact_units: np.ndarray
 
     @property
     def num_frames(self) -> int:
@@ -358,8 +367,22 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                       objects=tuple(objects), style=targets, q_init=np.zeros(kin.nq), interaction=interaction,
                       style_cfg=style, solver=solver, band_m=geometry.band_m, surface_margin=surface_margin_m(),
                       feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, turns=turns, stance_cfg=stance,
-                      self_pairs=link_pairs_beyond(kin.parents, 2), self_points=robot_self_points()[0], self_clusters=robot_self_points()[1])
+                      self_pairs=link_pairs_beyond(kin.parents, 2), self_points=robot_self_points()[0], self_clusters=robot_self_points()[1],
+                      contact_units=contact_units())
     return replace(problem, q_init=initial_configuration(problem))
+
+
+@lru_cache(maxsize=1)
+def contact_units() -> np.ndarray:
+    """(L,) the evaluation unit of each G1 link (``retarget.evaluation.units.default_units``)."""
+    from retarget.evaluation.units import default_units
+
+    out = np.full(NUM_LINKS, -1, np.intp)
+    for u, unit in enumerate(default_units()):
+        out[robot.body_indices(list(unit.links))] = u
+    free = np.flatnonzero(out < 0)
+    out[free] = out.max() + 1 + np.arange(len(free))
+    return out
 
 
 def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float,

@@ -18,12 +18,14 @@ from functools import cached_property
 
 import numpy as np
 
+from otr_gym import robot
 from retarget.geometry import ProximityQuery
 from retarget.iterate import SectionTimer, SolverState, channel_pose
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import posed_in_frames
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
+    FIXED,
     PairSet,
     Rows,
     cross,
@@ -48,6 +50,7 @@ class Linearisation:
     min_distance: float
     min_self_distance: float
     counts: np.ndarray  # (L + O,) active probes per link and object at this iterate (N_ℓ)
+    contact: ContactSelection  # the contact-state rows in use
 
     @cached_property
     def initial(self) -> np.ndarray:
@@ -238,32 +241,73 @@ def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: 
     return cost, sum(len(p.probes) for p in pairs), link_counts
 
 
-def _contact_state_rows(problem: Problem, targets: FrameTargets, fr: LinkFrames,
-                        pairs: list[_RobotPairs]) -> list[Rows]:
-    """Per channel and link, one row on the link's closest active probe that matches its
-    demonstrated contact state (``InteractionConfig.hold_weight``): pulled in to (d̂_ℓ)₊ when its
-    part touches, pushed out to min(d̂_ℓ, c̄) when its part stays off; none when already there."""
+@dataclass(frozen=True)
+class ContactSelection:
+    """The contact-state probes of a frame, chosen at its first iterate (like N_ℓ, so that E
+    changes smoothly within the frame): per (channel, unit) the unit's closest probe then, its
+    target gap (m), whether it is to touch (else to stay clear) and the row's weight."""
+
+    channel: np.ndarray  # (k,)
+    probe: np.ndarray  # (k,) index into Problem.robot
+    target: np.ndarray  # (k,) m
+    touching: np.ndarray  # (k,) bool
+    weight: np.ndarray  # (k,)
+
+
+def _select_contact_rows(problem: Problem, targets: FrameTargets, pairs: list[_RobotPairs]) -> ContactSelection:
+    """Per channel and contact unit (``Problem.contact_units``: links that share human parts,
+    the evaluation's units), the unit's closest active probe where the unit is not in its
+    demonstrated contact state (``InteractionConfig.hold_weight``): a unit whose parts touch is
+    to come in to (d̂_u)₊, one whose parts stay off out to min(d̂_u, c̄). Per unit, not per
+    link: the G1's small ankle-pitch housing shares the person's ankle with the foot link and
+    cannot reach the floor whenever the person's ankle does."""
     cfg = problem.interaction
+    unit_of = problem.contact_units
     out = []
     for p in pairs:
         if len(p.probes) == 0:
             continue
-        hat = targets.robot_link_d[p.channel]
-        link = problem.robot.body[p.probes]
-        order = np.lexsort((p.query.d, link))  # per link, closest first
-        first = order[np.concatenate([[True], link[order][1:] != link[order][:-1]])]
-        lk, d = link[first], p.query.d[first]
+        # per unit (links sharing human parts), the smallest demonstrated gap of its links
+        hat_link = targets.robot_link_d[p.channel]
+        hat = np.full(unit_of.max() + 1, np.inf)
+        np.minimum.at(hat, unit_of, hat_link)
+        unit = unit_of[problem.robot.body[p.probes]]
+        order = np.lexsort((p.query.d, unit))  # per unit, closest first
+        first = order[np.concatenate([[True], unit[order][1:] != unit[order][:-1]])]
+        lk = unit[first]
         touching = np.maximum(hat[lk], 0.0) < cfg.hold_m
         target = np.where(touching, np.maximum(hat[lk], 0.0), np.minimum(hat[lk], cfg.clearance_m))
-        wrong = np.flatnonzero(np.where(touching, d > target, d < target))
-        if len(wrong) == 0:
+        out.append((np.full(len(first), p.channel), p.probes[first], target, touching,
+                    np.where(touching, cfg.hold_weight, cfg.clearance_weight)))
+    if not out:
+        return ContactSelection(*(np.zeros(0, t) for t in (np.intp, np.intp, float, bool, float)))
+    return ContactSelection(*(np.concatenate(parts) for parts in zip(*out)))
+
+
+def _contact_state_rows(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
+                        selection: ContactSelection) -> list[Rows]:
+    """Rows r = d − target of the selected probes (those still in the band) whose unit is out of
+    its demonstrated state at this iterate: too far where it is to touch, too close where it is
+    to stay clear."""
+    out = []
+    for p in pairs:
+        mine = np.flatnonzero(selection.channel == p.channel)
+        if len(mine) == 0 or len(p.probes) == 0:
             continue
-        k = first[wrong]
+        at = np.minimum(np.searchsorted(p.probes, selection.probe[mine]), len(p.probes) - 1)
+        found = p.probes[at] == selection.probe[mine]  # p.probes is sorted
+        k, mine = at[found], mine[found]
+        # a row where the unit is not in its demonstrated state at this iterate
+        d = p.query.d[k]
+        wrong = np.where(selection.touching[mine], d > selection.target[mine], d < selection.target[mine])
+        k, mine = k[wrong], mine[wrong]
+        if len(k) == 0:
+            continue
+        link = problem.robot.body[p.probes[k]]
         track = problem.channels[p.channel]
-        rows = signed_distance_rows(d[wrong] - target[wrong], p.query.grad_d[k], p.x_w[k],
-                                    np.take(fr.pos, lk[wrong], axis=0), lk[wrong], track.body, p.rot_c, p.pos_c)
-        weight = np.where(touching[wrong], cfg.hold_weight, cfg.clearance_weight)
-        out.append(Rows(rows.value, weight, rows.phi, rows.body_a, rows.body_b))
+        rows = signed_distance_rows(p.query.d[k] - selection.target[mine], p.query.grad_d[k], p.x_w[k],
+                                    np.take(fr.pos, link, axis=0), link, track.body, p.rot_c, p.pos_c)
+        out.append(Rows(rows.value, selection.weight[mine], rows.phi, rows.body_a, rows.body_b))
     return out
 
 
@@ -320,13 +364,14 @@ def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i:
 
 
 def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timings: dict[str, float],
-              counts: np.ndarray | None = None) -> Linearisation:
+              counts: np.ndarray | None = None, contact: ContactSelection | None = None) -> Linearisation:
     """All rows of the QP at the current iterate.
 
     ``counts`` (L + O,) fixes N_ℓ, the active probe count of each link and object, instead of
     counting at this iterate: ``solve_frame`` counts once per frame, so that E stays a smooth
     function of the iterate within the frame (a count that jumps by one as a probe crosses d̄
     rescales the whole link's term, and the trust-region test would read that as model error).
+    ``contact`` fixes the contact-state rows the same way (chosen here when None).
     """
     tm = SectionTimer(timings)
     margin, check = problem.solver.constraint_margin_m, problem.solver.check_margin_m
@@ -343,7 +388,9 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     tm.lap("robot_channels")
 
     cost, total_pairs, link_counts = _robot_cost(problem, targets, fr, robot_pairs, counts)
-    cost += _contact_state_rows(problem, targets, fr, robot_pairs)
+    if contact is None:
+        contact = _select_contact_rows(problem, targets, robot_pairs)
+    cost += _contact_state_rows(problem, fr, robot_pairs, contact)
     tm.lap("robot_rows")
 
     object_counts = []
@@ -379,6 +426,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     capsules = self_collision_rows(problem, fr, margin)
     min_self = min(float(capsules.value.min()) if len(capsules) else np.inf,
                    float(self_rows.value.min()) if len(self_rows) else np.inf)
+    # always in the QP, like the capsule rows (not counted as self-collision)
+    capsules = Rows.concat([capsules, base_step_rows(problem, state, targets.t, fr)])
     tm.lap("self_collision")
 
     cost.append(stance_rows(targets.stance, fr, problem.stance_cfg.weight))
@@ -389,7 +438,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
                           targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
     tm.lap("style_rows")
     return Linearisation(Rows.concat(cost), Rows.concat([surface, capsules]), surface_channel, margin, fr,
-                         total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]))
+                         total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]),
+                         contact)
 
 
 def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
@@ -457,6 +507,29 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
     phi = twist_factors(a_w, x_w, fr.pos[link_a], fr.pos[link_b])
     value = d[keep] - problem.surface_margin[link_a] - problem.surface_margin[link_b]
     return Rows(value, np.ones(len(keep)), phi, link_a, link_b)
+
+
+#: The root link (pelvis): its origin is the floating base's.
+ROOT_LINK = robot.BODY_NAMES.index(robot.ROOT_BODY)
+
+
+def base_step_rows(problem: Problem, state: SolverState, t: int, fr: LinkFrames) -> Rows:
+    """Constraint rows b ∓ (p − p̂) ≥ 0 per world axis (``SolverConfig.base_step_m``): the base
+    origin p within b of p̂ = the previous frame's base moved by the pelvis style target's
+    displacement (the person's pelvis, its height scaled to the G1's). None on the first frame."""
+    if state.prev is None or t == 0:
+        return Rows.empty()
+    b = problem.solver.base_step_m
+    pelvis = ROOT_LINK
+    # the pelvis style target's displacement: the person's, its height scaled to the G1's
+    slot = int(np.flatnonzero(problem.style.links == pelvis)[0])
+    target = state.prev[0][:3] + problem.style.pos_w[t, slot] - problem.style.pos_w[t - 1, slot]
+    dev = fr.pos[pelvis] - target
+    phi = np.zeros((6, 12))
+    phi[:3, :3] = -np.eye(3)
+    phi[3:, :3] = np.eye(3)
+    return Rows(np.concatenate([b - dev, b + dev]), np.ones(6), phi, np.full(6, pelvis, np.intp),
+                np.full(6, FIXED, np.intp))
 
 
 def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:

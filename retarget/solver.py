@@ -30,7 +30,7 @@ import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
 from otr_gym import robot
-from otr_gym.rotations import so3_exp
+from otr_gym.rotations import so3_exp, so3_log
 from retarget.arm_seed import arm_links, seed_arms
 from retarget.contact_annotation import frame_contacts
 from retarget.iterate import FrameStats, SectionTimer, SolverState, new_state, retract
@@ -62,13 +62,14 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     targets = replace(frame_targets(problem, t),
                       stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
                                             problem.surface_margin[problem.feet], previous,
-                                            problem.stance_cfg.touch_m, problem.turns))
+                                            problem.stance_cfg.touch_m, problem.turns,
+                                            problem.stance_cfg.ramp_frames))
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m
     budget = cfg.first_frame_iterations if state.prev is None else cfg.iterations
     lin = linearise(problem, state, targets, stats.timings)
-    counts = lin.counts
+    counts, contact = lin.counts, lin.contact
     model = model_at(problem, state, lin, stats.timings)
     scale = 1.0
     for _ in range(budget):
@@ -81,7 +82,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
             break
         saved = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
         retract(problem, state, delta)
-        trial = linearise(problem, state, targets, stats.timings, counts=counts)
+        trial = linearise(problem, state, targets, stats.timings, counts=counts, contact=contact)
         trial_model = model_at(problem, state, trial, stats.timings, assemble=False)
         gain = model.merit - trial_model.merit
         if gain > 0.1 * max(predicted, 0.0) and gain > 0.0:
@@ -113,7 +114,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         delta = qp_step(problem, state, targets, restore, cfg.feasibility_trust_scale ** k, stats)
         stats.iterations += 1
         retract(problem, state, delta)
-        lin = linearise(problem, state, targets, stats.timings, counts=counts)
+        lin = linearise(problem, state, targets, stats.timings, counts=counts, contact=contact)
         if state.qp.failures > failures:
             break  # the linearised constraints conflict (e.g. a pinned object in the hand's way)
     stats.active_pairs = lin.active_pairs
@@ -166,6 +167,47 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
             state.obj_rot[i] = tr.rot_w[t] @ tr.rot_w[t - 1].T @ state.obj_rot[i]
 
 
+#: Leg joints of each G1 foot (indices into the 29 joints, MJCF order: left leg 0–5, right 6–11).
+_LEG_JOINTS = {"left_ankle_roll_link": np.arange(0, 6), "right_ankle_roll_link": np.arange(6, 12)}
+
+
+def replant_feet(problem: Problem, state: SolverState, t: int, iterations: int = 2) -> None:
+    """Bring the feet planted at t − 1 and still in stance at t back to their previous poses
+    after the warm start moved the base: a few damped Gauss–Newton steps on each leg's six
+    joints (link Jacobians), within the joint limits.
+
+    The warm start moves the robot rigidly with the person's pelvis, planted feet included; the
+    stance rows then open each frame centimetres off their targets (a merit of ~10² at 10⁶ per
+    m²), which took the SQP its whole iteration budget in one frame out of two."""
+    if state.prev is None or t == 0:
+        return
+    feet = [(f, link) for f, link in enumerate(problem.feet) if problem.stance[t - 1, f] and problem.stance[t, f]]
+    if not feet:
+        return
+    before = problem.kin.frames(state.data, state.prev[0])
+    targets = {link: (before.rot[link].copy(), before.pos[link].copy()) for _, link in feet}
+
+    def errors(q: np.ndarray) -> tuple[object, dict]:
+        fr = problem.kin.frames(state.data, q)
+        return fr, {link: np.concatenate([targets[link][1] - fr.pos[link], so3_log(targets[link][0] @ fr.rot[link].T)])
+                    for _, link in feet}
+
+    now, err = errors(state.q)
+    for _ in range(iterations):
+        q = state.q.copy()
+        for _, link in feet:
+            joints = _LEG_JOINTS[robot.BODY_NAMES[link]]
+            jac = now.jac[link][:, 6 + joints]  # (6, 6): the leg's columns (world-aligned, link origin)
+            # damped least squares, at most 0.1 rad per joint (the SQP's trust region)
+            step = np.clip(np.linalg.solve(jac.T @ jac + 1e-4 * np.eye(6), jac.T @ err[link]), -0.1, 0.1)
+            q[7 + joints] = np.clip(q[7 + joints] + step, problem.kin.joint_lower[joints],
+                                    problem.kin.joint_upper[joints])
+        trial, trial_err = errors(q)
+        if sum(float(e @ e) for e in trial_err.values()) >= sum(float(e @ e) for e in err.values()):
+            break  # keep the better configuration
+        state.q, now, err = q, trial, trial_err
+
+
 def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> float:
     """Smallest self-collision row of the meshes at ``q`` (m; inf when no pair is close).
 
@@ -204,6 +246,7 @@ def _solve_sequence(problem: Problem, progress) -> Solution:
     for t in range(T):
         if t > 0:
             warm_start(problem, state, t, held)
+            replant_feet(problem, state, t)
             # a local SQP cannot leave an arm branch pinned at joint limits (retarget.arm_seed)
             seeded = seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps, free=arms_free)
             if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(

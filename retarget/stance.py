@@ -51,6 +51,9 @@ class StanceConfig:
     touch_m: float = 0.002
     #: A standing foot turning by less than this per frame holds still (rad; 0.005 = 14°/s at 50 fps).
     pivot_min_rad: float = 0.005
+    #: The planting weight grows over the first frames of a stance (1/3, 2/3, 1): a foot that
+    #: lands is brought to the floor over a few frames, not snapped to it in one.
+    ramp_frames: int = 3
 
 
 @dataclass(frozen=True)
@@ -61,10 +64,11 @@ class StanceTargets:
     link: np.ndarray  # (k,) link index
     points: np.ndarray  # (k, 3) link frame (m)
     target_w: np.ndarray  # (k, 3) world (m); NaN = free
+    gain: np.ndarray  # (k,) share of the full planting weight (the touch-down ramp)
 
     @staticmethod
     def empty() -> StanceTargets:
-        return StanceTargets(np.zeros(0, np.intp), np.zeros((0, 3)), np.zeros((0, 3)))
+        return StanceTargets(np.zeros(0, np.intp), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
 
 
 def demonstrated_stance(foot_lowest_z: np.ndarray, contact_m: float) -> np.ndarray:
@@ -122,12 +126,13 @@ def demonstrated_turns(ankle_pos_w: np.ndarray, ankle_rot_w: np.ndarray, toe_pos
 
 def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np.ndarray, ...],
                    floor: np.ndarray, previous: LinkFrames | None, touch_m: float,
-                   turns: FootTurns | None = None) -> StanceTargets:
+                   turns: FootTurns | None = None, ramp_frames: int = 1) -> StanceTargets:
     """Targets of frame t. ``stance`` (T, F); ``feet`` (F,) link indices; ``soles`` per foot its
     sole points (link frame); ``floor`` (F,) m the height a sole point must sit at; ``previous``
     the link frames of frame t − 1's solution (None on the first frame); ``turns`` the
-    demonstrated stance turns (None: every standing foot holds still)."""
-    links, points, targets = [], [], []
+    demonstrated stance turns (None: every standing foot holds still); ``ramp_frames`` the
+    frames over which a new stance's weight grows to its full value."""
+    links, points, targets, gains = [], [], [], []
     for f, link in enumerate(feet):
         if not stance[t, f]:
             continue
@@ -146,12 +151,17 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
                     centre = (previous.rot[link] @ pivot + previous.pos[link])[:2]
                     held = centre + (held - centre) @ np.array([[c, s], [-s, c]])
                 target[:, :2] = held
+        since = 1  # frames of this stance so far, t included
+        while since < ramp_frames and t - since >= 0 and stance[t - since, f]:
+            since += 1
         links.append(np.full(len(pts), link, np.intp))
         points.append(pts)
         targets.append(target)
+        gains.append(np.full(len(pts), min(1.0, since / max(ramp_frames, 1))))
     if not links:
         return StanceTargets.empty()
-    return StanceTargets(np.concatenate(links), np.concatenate(points), np.concatenate(targets))
+    return StanceTargets(np.concatenate(links), np.concatenate(points), np.concatenate(targets),
+                         np.concatenate(gains))
 
 
 def stance_rows(targets: StanceTargets, frames: LinkFrames, weight: float) -> Rows:
@@ -166,4 +176,5 @@ def stance_rows(targets: StanceTargets, frames: LinkFrames, weight: float) -> Ro
     a_w = np.eye(3)[axis]
     phi = twist_factors(a_w, x_w[point], frames.pos[link[point]], None)
     value = x_w[point, axis] - targets.target_w[point, axis]
-    return Rows(value, weight / per_foot[link[point]], phi, link[point], np.full(len(point), FIXED, np.intp))
+    weights = weight * targets.gain[point] / per_foot[link[point]]
+    return Rows(value, weights, phi, link[point], np.full(len(point), FIXED, np.intp))

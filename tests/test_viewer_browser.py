@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import os
 import socket
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,7 @@ sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not 
 if not CHROMIUM.is_file():
     pytest.skip(f"{CHROMIUM} is absent (Debian: apt-get install chromium)", allow_module_level=True)
 
-from retarget.viewer import CHROMIUM_ARGS, GROUND_COLOUR, open_viewer  # noqa: E402
+from retarget.viewer import CHROMIUM_ARGS, GROUND_COLOUR, open_viewer
 
 CONTACT_LINK = "left_ankle_roll_link"
 
@@ -64,15 +65,22 @@ def browser():
         chromium.close()
 
 
-def _open(browser, port: int):
+@contextmanager
+def _viewer_page(browser, viewer):
+    """A page on ``viewer``, closed afterwards with the viewer: a software-WebGL page left open
+    keeps rendering and starves the next test's page of the CPU (its canvas then never came)."""
     page = browser.new_page(viewport={"width": 1280, "height": 800})
-    page.goto(f"http://127.0.0.1:{port}")
-    page.wait_for_selector("canvas")
-    page.get_by_text("frame 0 /").wait_for()
-    # the client's notice that WebGL runs in software (no GPU here) would cover part of the scene
-    page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
-    page.wait_for_timeout(1000)  # meshes arrive and render
-    return page
+    try:
+        page.goto(f"http://127.0.0.1:{viewer.server.get_port()}")
+        page.wait_for_selector("canvas")
+        page.get_by_text("frame 0 /").wait_for()
+        # the client's notice that WebGL runs in software (no GPU here) would cover part of the scene
+        page.add_style_tag(content=".mantine-Notification-root { display: none !important; }")
+        page.wait_for_timeout(1000)  # meshes arrive and render
+        yield page
+    finally:
+        page.close()
+        viewer.close()
 
 
 def _canvas(page) -> bytes:
@@ -83,8 +91,7 @@ def _canvas(page) -> bytes:
 
 def test_slider_moves_the_robot_and_an_annotated_contact_turns_the_foot_orange(browser, annotated_walk):
     viewer = open_viewer({"walk": annotated_walk}, port=_free_port())
-    try:
-        page = _open(browser, viewer.server.get_port())
+    with _viewer_page(browser, viewer) as page:
         before = _canvas(page)
         assert _orange_pixels(before) < 20  # frame 0: nothing annotated
         last = annotated_walk.num_frames - 1
@@ -105,8 +112,6 @@ def test_slider_moves_the_robot_and_an_annotated_contact_turns_the_foot_orange(b
         page.get_by_text("frame 0 /").wait_for()
         page.wait_for_timeout(1000)
         assert _orange_pixels(_canvas(page)) < 20  # and back to its own colour without the contact
-    finally:
-        viewer.close()
 
 
 @pytest.fixture(scope="module")
@@ -123,8 +128,7 @@ def retargeted_walk():
 def test_the_person_beside_the_robot_with_the_eval_metrics_and_the_readme_picture(browser, retargeted_walk):
     reference, demo = retargeted_walk
     viewer = open_viewer({"ours": reference}, demo, port=_free_port())
-    try:
-        page = _open(browser, viewer.server.get_port())
+    with _viewer_page(browser, viewer) as page:
         page.get_by_text("ground J").wait_for(timeout=60_000)  # otr eval's table, computed in the background
         frame_box = page.locator("input.mantine-NumberInput-input").first  # the number beside the slider
         frame_box.fill("60")
@@ -138,23 +142,18 @@ def test_the_person_beside_the_robot_with_the_eval_metrics_and_the_readme_pictur
         if target:
             Path(target).parent.mkdir(parents=True, exist_ok=True)
             Path(target).write_bytes(png)
-    finally:
-        viewer.close()
 
 
 def test_references_of_one_demonstration_are_switchable_on_the_page(browser, annotated_walk, standing_reference):
     stand = Reference.load(standing_reference)
     viewer = open_viewer({"walk": annotated_walk, "stand": stand}, port=_free_port())
-    try:
-        page = _open(browser, viewer.server.get_port())
+    with _viewer_page(browser, viewer) as page:
         page.get_by_text(f"frame 0 / {annotated_walk.num_frames - 1}").wait_for()
         page.locator("input.mantine-Select-input[value='walk']").click()
         page.get_by_role("option", name="stand").click()
         page.get_by_text(f"stand · frame 0 / {stand.num_frames - 1}").wait_for()
         assert viewer.current == "stand" and viewer.track.contact_links is None
         assert page.get_by_text("contacts: no annotations in this reference").count() == 1
-    finally:
-        viewer.close()
 
 
 def test_a_demonstration_alone_is_shown_with_its_floor_contacts(browser):
@@ -162,9 +161,6 @@ def test_a_demonstration_alone_is_shown_with_its_floor_contacts(browser):
 
     demo = clip("walk", 40, 70)
     viewer = open_viewer({}, demo, port=_free_port())
-    try:
-        page = _open(browser, viewer.server.get_port())
+    with _viewer_page(browser, viewer) as page:
         page.get_by_text(f"frame 0 / {demo.num_frames - 1}").wait_for()
         assert viewer.track is None and _orange_pixels(_canvas(page)) > 30  # its soles on the floor
-    finally:
-        viewer.close()
