@@ -73,6 +73,12 @@ class CommandCfg:
     adaptive_uniform_ratio: float = 0.1  # §2: p ∝ f + 0.1/n
     adaptive_kernel_size: int = 1  # §2: λⁱ kernel of size 1 (no smoothing)
     adaptive_lambda: float = 0.8  # §2
+    #: Motion libraries (ours): this share of the starts is spread evenly over the clips, the
+    #: rest follows each clip's failures. Without it one clip the policy cannot track yet (a
+    #: crawl on a slope that is not simulated) drew 93 % of all starts after 700 iterations of
+    #: an 8-clip library and starved the others. 0 = one distribution over all bins (§2).
+    #: One clip: no effect.
+    library_clip_floor: float = 0.5
     #: Clips shorter than this are rejected at load (a half-second clip is almost surely a bad export).
     min_clip_frames: int = 25
     reset_noise: ResetNoiseCfg = field(default_factory=ResetNoiseCfg)

@@ -130,12 +130,14 @@ def test_clip_statistics_of_a_rollout_are_exact():
     assert stats.flush() == {}  # sums cleared
 
 
-def test_sampler_bins_follow_injected_failures():
+@pytest.mark.parametrize("floor", [0.0, 0.5])
+def test_sampler_bins_follow_injected_failures(floor):
     """Two clips of 100 and 250 frames (3 and 6 bins). Failures injected in bin 4 of the second
-    clip for 200 steps: the EMA, the start distribution and the sampled starts follow exactly."""
+    clip for 200 steps: the EMA, the start distribution and the sampled starts follow exactly
+    (the clip first, with ``floor`` of the starts spread evenly over the clips, then the bin)."""
     refs = [standing_reference(duration_s=99 / 50), standing_reference(duration_s=249 / 50)]
     motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
-    cfg = CommandCfg(reset_noise_enabled=False)
+    cfg = CommandCfg(reset_noise_enabled=False, library_clip_floor=floor)
     n = 4000
     cmd = MotionCommand(motion, n, cfg, torch.Generator().manual_seed(0))
     assert cmd.bin_count.tolist() == [3, 6]
@@ -154,7 +156,10 @@ def test_sampler_bins_follow_injected_failures():
     f = 5.0 * (1.0 - (1.0 - cfg.adaptive_alpha) ** steps)
     expected = torch.tensor([0.1 / 3] * 3 + [0.1 / 6] * 6)
     expected[7] += f
-    expected /= expected.sum()
+    mass = torch.stack([expected[:3].sum(), expected[3:].sum()])
+    share = floor / 2 + (1 - floor) * mass / mass.sum()
+    expected[:3] *= share[0] / mass[0]
+    expected[3:] *= share[1] / mass[1]
     torch.testing.assert_close(cmd.failure_rate[7], torch.tensor(f), rtol=1e-5, atol=0)
     torch.testing.assert_close(cmd.sampling_probabilities(), expected, rtol=1e-5, atol=0)
     torch.testing.assert_close(cmd.clip_probabilities(), torch.stack([expected[:3].sum(), expected[3:].sum()]),
@@ -164,6 +169,26 @@ def test_sampler_bins_follow_injected_failures():
     in_bin = (cmd.clip == 1) & (cmd.start_frame * 6 // 248 == 4)
     p = float(expected[7])
     assert abs(in_bin.float().mean().item() - p) < 4 * np.sqrt(p * (1 - p) / n)
+
+
+def test_a_clip_that_always_fails_keeps_the_others_sampled():
+    """Three clips; five envs fail on clip 0 at every step for 5 000 steps (a clip the policy
+    cannot track). With the default floor of 0.5 the other two clips keep at least a third of
+    the starts between them; with floor 0 (one distribution over all bins) clip 0 takes over
+    95 %."""
+    refs = [standing_reference(duration_s=99 / 50) for _ in range(3)]
+    motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
+    shares = {}
+    for floor in (0.5, 0.0):
+        cmd = MotionCommand(motion, 300, CommandCfg(reset_noise_enabled=False, library_clip_floor=floor),
+                            torch.Generator().manual_seed(0))
+        failing = (cmd.clip == 0) & (torch.arange(300) < 15)
+        for _ in range(5000):
+            cmd.record_failures(failing)
+            cmd.update_failure_rate()
+        shares[floor] = cmd.clip_probabilities()
+    assert shares[0.5][1:].sum() >= 0.5 * 2 / 3 and shares[0.5][0] < 0.66
+    assert shares[0.0][0] > 0.95
 
 
 def test_clips_of_different_rates_and_lengths_mix_at_50_fps(tmp_path):

@@ -10,8 +10,12 @@ has n_c = ⌊T_c / (fps·bin_duration)⌋ + 1 bins. A termination adds 1 to the 
 target frame; every step the per-bin failure rate follows f ← α·cur + (1−α)·f. A start bin is
 drawn with p(bin) ∝ Σ_k λᵏ·(f + r/n_c)[bin + k] (k < kernel size, clamped inside the clip),
 then t₀ = ⌊(j + U)/n_c · (T_c − 2)⌋ for local bin j (T_c − 2 rather than the spec's T_c − 1 so
-that the first target t₀ + 1 exists). With several clips all bins share one distribution, so
-with no failures every clip gets the same total mass r.
+that the first target t₀ + 1 exists). With several clips (ours) a clip is drawn first:
+p(c) = β/C + (1 − β)·m_c/Σm, where m_c is the clip's mass under that rule and β the
+``library_clip_floor``, then a bin of the clip by the rule; β = 0 is one distribution over all
+bins, and with no failures every clip gets the same mass either way. The floor matters because
+failure counts feed back on themselves: a clip the policy cannot track gets more starts, hence
+more failures, and took almost all starts of a library without it.
 
 Everything is batched over envs and masked (``torch.where``) rather than indexed by the ids
 of the envs to reset, so no step needs a device→host synchronisation.
@@ -52,6 +56,8 @@ class MotionCommand:
             raise ValueError(f"command.start must be one of {START_MODES}, got '{cfg.start}'")
         if cfg.on_clip_end not in CLIP_END_MODES:
             raise ValueError(f"command.on_clip_end must be one of {CLIP_END_MODES}, got '{cfg.on_clip_end}'")
+        if not 0.0 <= cfg.library_clip_floor <= 1.0:
+            raise ValueError(f"command.library_clip_floor must lie in [0, 1], got {cfg.library_clip_floor}")
         self.motion, self.cfg, self.num_envs, self.gen = motion, cfg, num_envs, generator
         device = self.device = motion.device
         frames_per_bin = cfg.fps * cfg.bin_duration_s
@@ -121,7 +127,11 @@ class MotionCommand:
         p = torch.zeros_like(weight)
         for k in range(self.cfg.adaptive_kernel_size):
             p += self.cfg.adaptive_lambda**k * weight[torch.minimum(index + k, last_bin)]
-        return p / p.sum()
+        clips = self.motion.num_clips
+        mass = torch.zeros(clips, device=self.device).index_add_(0, self.bin_clip, p)  # m_c
+        floor = self.cfg.library_clip_floor
+        share = floor / clips + (1.0 - floor) * mass / mass.sum()  # p(c)
+        return p / mass[self.bin_clip] * share[self.bin_clip]
 
     def clip_probabilities(self) -> torch.Tensor:
         """(C,) total start probability of each clip's bins."""
