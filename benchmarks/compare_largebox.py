@@ -35,7 +35,8 @@ from otr_gym.rotations import (
     quat_from_yaw,
     quat_to_matrix,
 )
-from retarget.demos import Demonstration, load_demonstration
+from retarget.demonstration import Demonstration
+from retarget.demos import load_demonstration
 from retarget.evaluation.alignment import demo_at_times
 from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
 from retarget.evaluation.report import format_scale_notes, format_table

@@ -61,7 +61,7 @@ import numpy as np
 import yaml
 
 from otr_gym.rotations import matrix_to_quat, quat_from_vector_pairs, quat_normalize, quat_to_matrix
-from retarget.demos import Demonstration, InvalidDemonstrationError
+from retarget.demonstration import Demonstration, InvalidDemonstrationError
 
 UNITS_M: dict[str, float] = {
     "metres": 1.0, "decimetres": 0.1, "centimetres": 0.01, "millimetres": 0.001, "inches": 0.0254,
@@ -822,7 +822,7 @@ def follow_ankles(part_pos: np.ndarray, part_quat: np.ndarray, joints_w: np.ndar
 
 def read_bvh(path: str | Path, options: BvhOptions | None = None, ground: bool = True) -> Demonstration:
     """A BVH file as a Demonstration (module docstring); BvhError names the file and problem."""
-    from retarget.demos import _ground_shift
+    from retarget.demonstration import ground_shift
     from retarget.human import PART_NAMES, PART_PARENTS, HumanModel, fit_shape, shape_basis
 
     options = options or BvhOptions()
@@ -872,7 +872,7 @@ def read_bvh(path: str | Path, options: BvhOptions | None = None, ground: bool =
     tilt_deg = 0.0
     if ground:
         part_pos, part_quat, tilt_deg = level_floor(model.surface, part_pos, part_quat)
-    shift = _ground_shift(model.surface, part_pos, part_quat) if ground else 0.0
+    shift = ground_shift(model.surface, part_pos, part_quat) if ground else 0.0
     part_pos[..., 2] += shift
 
     info = {

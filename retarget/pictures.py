@@ -13,7 +13,7 @@ import numpy as np
 
 from otr_gym.reference import Reference
 from otr_gym.render import HUMAN_RGBA, RigidTrack, SceneRenderer, grid, reference_tracks, save_png
-from retarget.demos import Demonstration
+from retarget.demonstration import Demonstration
 
 TABLE_RGBA = (0.55, 0.4, 0.25, 1.0)
 

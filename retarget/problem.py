@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from otr_gym import robot
 from otr_gym.robot_geometry import surface_margin_m, visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
-from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
+from retarget.demonstration import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
 from retarget.geometry import Channel, GeometryConfig, GridStack, GroundChannel, SDFChannel
 from retarget.kinematics import NUM_LINKS, RobotKinematics, link_pairs_beyond
 from retarget.margins import ErrorMargin, cached_margin

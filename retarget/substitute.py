@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from otr_gym.rotations import quat_apply, quat_from_rotvec
-from retarget.demos import Demonstration, DemoObject, InvalidDemonstrationError
+from retarget.demonstration import Demonstration, DemoObject, InvalidDemonstrationError
 from retarget.geometry import GeometryConfig, SDFChannel, sample_surface
 from retarget.meshes import TriMesh, as_trimesh
 from retarget.shapes import ShapeSpec, substitute_mesh

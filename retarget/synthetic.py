@@ -29,7 +29,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from otr_gym.rotations import quat_apply, quat_from_rotvec, quat_from_vector_pairs, quat_mul, quat_slerp, quat_to_matrix
 from otr_gym.scene import TableSpec
-from retarget.demos import Demonstration, DemoObject
+from retarget.demonstration import Demonstration, DemoObject
 from retarget.human import PART_NAMES, PART_PARENTS, SMPLX_REST_QUAT_W, HumanModel, forward_kinematics
 
 KINDS = ("walk", "box_carry", "crawl")

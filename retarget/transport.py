@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 from retarget.geometry import cached_arrays, default_cache_dir
 
 if TYPE_CHECKING:
-    from retarget.demos import Demonstration
+    from retarget.demonstration import Demonstration
     from retarget.probes import ProbeSet
 
 #: Bumped whenever the content of cached assignments changes.

@@ -344,7 +344,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
 
 def _check_inputs(args: argparse.Namespace) -> tuple[RetargetConfig, list[VariantJob]]:
     """Everything that can be refused before any work: raises ValueError/ConfigError naming it."""
-    from retarget.demos import InvalidDemonstrationError
+    from retarget.demonstration import InvalidDemonstrationError
     from retarget.meshes import InvalidMeshError
     from retarget.substitute import free_objects, manipulated_object
 

@@ -439,7 +439,8 @@ def main(args: argparse.Namespace) -> int:
     from otr_gym.reference import InvalidReferenceError, Reference
     from otr_gym.summary import is_reference_file
     from retarget.bvh import options_from_args
-    from retarget.demos import InvalidDemonstrationError, load_demonstration
+    from retarget.demonstration import InvalidDemonstrationError
+    from retarget.demos import load_demonstration
 
     try:
         references, demos = {}, []

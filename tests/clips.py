@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import replace
 from functools import lru_cache
 
-from retarget.demos import Demonstration
+from retarget.demonstration import Demonstration
 from retarget.synthetic import generate
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.cli import main
 from otr_gym.reference import Reference
-from retarget.demos import Demonstration
+from retarget.demonstration import Demonstration
 
 
 def test_help_lists_every_available_command(capsys):

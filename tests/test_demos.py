@@ -13,14 +13,8 @@ import torch
 import trimesh
 
 from otr_gym.rotations import quat_apply_inverse, quat_from_rotvec, quat_mul, quat_to_matrix, quat_to_rotvec
-from retarget.demos import (
-    INTERMIMIC_JOINTS,
-    INTERMIMIC_OF_PART,
-    Demonstration,
-    DemonstrationFileNotFoundError,
-    InvalidDemonstrationError,
-    load_demonstration,
-)
+from retarget.demonstration import Demonstration, DemonstrationFileNotFoundError, InvalidDemonstrationError
+from retarget.demos import INTERMIMIC_JOINTS, INTERMIMIC_OF_PART, load_demonstration
 from retarget.human import PART_NAMES, SMPLX_REST_QUAT_W, STYLE_LINKS, HumanModel, alignment_offsets, part_index
 from retarget.meshes import load_mesh, signed_distance
 from retarget.synthetic import generate

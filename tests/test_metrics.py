@@ -12,7 +12,7 @@ import trimesh
 
 from otr_gym.reference import InvalidReferenceError, ObjectTrack, Reference
 from otr_gym.rotations import quat_apply, quat_from_rotvec, quat_mul
-from retarget.demos import Demonstration, DemoObject
+from retarget.demonstration import Demonstration, DemoObject
 from retarget.evaluation.alignment import AlignmentError, check_durations, demo_at_times
 from retarget.evaluation.channels import reference_tracks
 from retarget.evaluation.config import EvalConfig

@@ -297,7 +297,7 @@ def test_a_substitute_too_big_to_hold_finishes_with_a_warning_and_its_recall(gra
 
 
 def test_a_substituted_demonstration_refuses_to_be_saved_as_captured(tmp_path):
-    from retarget.demos import InvalidDemonstrationError
+    from retarget.demonstration import InvalidDemonstrationError
 
     demo = clip("box_carry", 166, 168)
     with pytest.raises(InvalidDemonstrationError, match=r"\['box'\].*substitutes"):

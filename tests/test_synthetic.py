@@ -20,7 +20,7 @@ from otr_gym.rotations import (
     quat_mul,
     quat_to_matrix,
 )
-from retarget.demos import Demonstration
+from retarget.demonstration import Demonstration
 from retarget.human import PART_NAMES
 from retarget.synthetic import KINDS, generate
 

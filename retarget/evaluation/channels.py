@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from otr_gym.reference import InvalidReferenceError, Reference
-from retarget.demos import Demonstration
+from retarget.demonstration import Demonstration
 from retarget.meshes import TriMesh, object_mesh
 
 

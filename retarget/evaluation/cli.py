@@ -80,7 +80,8 @@ def pair_demonstrations(references: list[Path], demos: list[Path]) -> list[Path]
 def main(args: argparse.Namespace) -> int:
     from otr_gym.reference import InvalidReferenceError, Reference, list_references
     from retarget.bvh import options_from_args
-    from retarget.demos import InvalidDemonstrationError, load_demonstration
+    from retarget.demonstration import InvalidDemonstrationError
+    from retarget.demos import load_demonstration
     from retarget.evaluation.alignment import AlignmentError
     from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
     from otr_gym.io import write_json

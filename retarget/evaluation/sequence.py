@@ -23,7 +23,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.reference import Reference
 from otr_gym.robot_geometry import visual_meshes
-from retarget.demos import Demonstration
+from retarget.demonstration import Demonstration
 from retarget.evaluation.alignment import check_durations, demo_at_times
 from retarget.evaluation.channels import object_channels, reference_tracks
 from retarget.evaluation.config import EvalConfig
