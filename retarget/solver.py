@@ -167,8 +167,10 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
             state.obj_rot[i] = tr.rot_w[t] @ tr.rot_w[t - 1].T @ state.obj_rot[i]
 
 
-#: Leg joints of each G1 foot (indices into the 29 joints, MJCF order: left leg 0–5, right 6–11).
-_LEG_JOINTS = {"left_ankle_roll_link": np.arange(0, 6), "right_ankle_roll_link": np.arange(6, 12)}
+#: The six leg joints of each G1 foot link (indices into the 29 joints), by name from the spec.
+_LEG_JOINTS = {f"{side}_ankle_roll_link": robot.joint_indices(
+    [f"{side}_{j}_joint" for j in ("hip_pitch", "hip_roll", "hip_yaw", "knee", "ankle_pitch", "ankle_roll")])
+    for side in ("left", "right")}
 
 
 def replant_feet(problem: Problem, state: SolverState, t: int, iterations: int = 2) -> None:
