@@ -51,7 +51,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     shrinks (×``trust_shrink``), after good steps it grows back. The proximity residuals are
     not smooth everywhere (witnesses jump across box edges), so without this test the
     Gauss–Newton steps can wander at the full trust radius instead of converging. The budget
-    (50 iterations on the first frame, 6 after) counts trial steps; it ends early when
+    (50 iterations on the first frame, 3 after) counts trial steps; it ends early when
     ‖δ‖∞ < 1e-4, when the model predicts too small a decrease (``model_tolerance``), or when a
     step predicted to gain little is rejected (``rejected_model_tolerance``). If the accepted
     point still violates ε_col, restoration steps follow (``SolverConfig.feasibility_iterations``).
