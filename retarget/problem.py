@@ -27,6 +27,7 @@ from otr_gym import robot
 from otr_gym.robot_geometry import surface_margin_m, visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
 from retarget.demonstration import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
+from retarget.evaluation.feet import least_moving_speed
 from retarget.geometry import Channel, GeometryConfig, GridStack, GroundChannel, SDFChannel
 from retarget.kinematics import NUM_LINKS, RobotKinematics, link_pairs_beyond
 from retarget.margins import ErrorMargin, cached_margin
@@ -195,10 +196,11 @@ class Problem:
     #: (``otr_gym.robot_geometry.surface_margin_m``); non-penetration rows keep it as clearance.
     surface_margin: np.ndarray
     #: Planted feet (``retarget.stance``): G1 foot links (F,), their flat-sole points (link
-    #: frame), the person's stance per frame (T, F) and the settings.
+    #: frame), the person's stance and sweep flags per frame (T, F) and the settings.
     feet: np.ndarray
     soles: tuple[np.ndarray, ...]
     stance: np.ndarray
+    sweep: np.ndarray
     turns: FootTurns
     stance_cfg: StanceConfig
     #: (P, 2) links whose visual meshes must not overlap (more than two joints apart)
@@ -355,7 +357,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
     guards = robot_guard_points(guard_spacing_m)
     feet = robot.body_indices(list(robot.FEET))
     soles = tuple(sole_points(guards.points[guards.body == f], stance.sole_band_m) for f in feet)
-    in_stance, turns = demonstrated_feet(demo, part_pos, part_rot, scale, soles, stance)
+    in_stance, sweep, turns = demonstrated_feet(demo, part_pos, part_rot, scale, soles, stance)
     vertex_guards = robot_vertex_guards()
     both = ProbeSet(robot_set.body_names, np.concatenate([robot_set.points, guards.points]),
                     np.concatenate([robot_set.body, guards.body]))
@@ -371,7 +373,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                       demo_points=demo_points, part_pos_w=part_pos, part_rot_w=part_rot, channels=tuple(channels),
                       objects=tuple(objects), style=targets, q_init=np.zeros(kin.nq), interaction=interaction,
                       style_cfg=style, solver=solver, band_m=geometry.band_m, surface_margin=surface_margin_m(),
-                      feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, turns=turns, stance_cfg=stance,
+                      feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, sweep=sweep, turns=turns, stance_cfg=stance,
                       self_pairs=link_pairs_beyond(kin.parents, 2), self_points=robot_self_points()[0], self_clusters=robot_self_points()[1],
                       contact_units=contact_units())
     return replace(problem, q_init=initial_configuration(problem))
@@ -391,21 +393,27 @@ def contact_units() -> np.ndarray:
 
 
 def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float,
-                      soles: tuple[np.ndarray, ...], cfg: StanceConfig) -> tuple[np.ndarray, FootTurns]:
-    """The person's stance (T, F) and stance turns mapped onto the G1 soles, from the foot units
-    (the human parts of each G1 foot link, ``retarget.human.G1_LINK_PARTS``: ankle, then toes),
-    surface × ``scale`` (``retarget.stance``)."""
+                      soles: tuple[np.ndarray, ...], cfg: StanceConfig) -> tuple[np.ndarray, np.ndarray, FootTurns]:
+    """The person's stance and sweep flags (T, F; ``demonstrated_stance``) and stance turns
+    mapped onto the G1 soles, from the foot units (the human parts of each G1 foot link,
+    ``retarget.human.G1_LINK_PARTS``: ankle, then toes), surface × ``scale`` (``retarget.stance``)."""
     from retarget.human import G1_LINK_PARTS
 
     names = list(demo.surface.part_names)
     parts = [[names.index(p) for p in G1_LINK_PARTS[foot]] for foot in robot.FEET]
     vertices = [np.concatenate([np.einsum("tij,vj->tvi", part_rot_w[:, k], scale * np.asarray(demo.surface.vertices[k]))
                                 + part_pos_w[:, k, None] for k in ks], axis=1) for ks in parts]
-    stance = demonstrated_stance(np.stack([v[..., 2].min(axis=1) for v in vertices], axis=1), cfg.contact_m)
+    T = len(part_pos_w)
+    pelvis_speed = (np.linalg.norm(np.gradient(part_pos_w[:, 0, :2], 1.0 / demo.fps, axis=0), axis=1) if T > 1
+                    else np.zeros(T))
+    foot_speed = (np.stack([least_moving_speed(v, demo.fps) for v in vertices], axis=1) if T > 1
+                  else np.zeros((T, len(vertices))))
+    stance, sweep = demonstrated_stance(np.stack([v[..., 2].min(axis=1) for v in vertices], axis=1), foot_speed,
+                                        pelvis_speed, cfg)
     boxes = np.stack([[s[:, :2].min(axis=0), s[:, :2].max(axis=0)] for s in soles])
     turns = demonstrated_turns(part_pos_w[:, [ks[0] for ks in parts]], part_rot_w[:, [ks[0] for ks in parts]],
                                part_pos_w[:, [ks[1] for ks in parts]], vertices, stance, boxes, cfg.pivot_min_rad)
-    return stance, turns
+    return stance, sweep, turns
 
 
 #: Cells of an object grid within this distance of the surface get a measured error margin.

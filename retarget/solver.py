@@ -63,7 +63,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
                       stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
                                             problem.surface_margin[problem.feet], previous,
                                             problem.stance_cfg.touch_m, problem.turns,
-                                            problem.stance_cfg.ramp_frames))
+                                            problem.stance_cfg.ramp_frames, problem.sweep))
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m

@@ -7,7 +7,9 @@ a term of its own, stiff enough to act as a constraint while the QP stays well p
 
 * **stance** comes from the demonstration, with the evaluation protocol's definition: frame t
   is a stance frame of a foot when the person's foot unit (ankle and foot parts) comes within
-  ``contact_m`` of the floor (paper Sec. IV-A, ε_eval);
+  ``contact_m`` of the floor (paper Sec. IV-A, ε_eval), unless it sweeps past the body
+  (faster than the pelvis, ``sweep_ratio``): a foot skimming the floor in its swing is held
+  on the floor but free to move horizontally;
 * **sole points**: the hull vertices of the G1 foot link that lie on its flat sole (within
   ``sole_band_m`` of the lowest one, link frame);
 * **pivots**: a person turns on a standing foot (on the ball or the heel). Per stance frame
@@ -41,8 +43,20 @@ from retarget.residuals import FIXED, Rows, twist_factors
 class StanceConfig:
     """Planted-foot settings (ours; the paper has no separate stance term)."""
 
-    #: A foot is in stance while the person's foot unit is this close to the floor (ε_eval).
+    #: A foot is in stance while the person's foot unit is this close to the floor (ε_eval) ...
     contact_m: float = 0.02
+    #: ... and its least-moving surface point is no faster (horizontally) than the person's
+    #: pelvis (``sweep_ratio`` × its speed), or than ``sweep_floor_m_s``. A foot that skims
+    #: the floor while it overtakes the body is swinging, not standing: in a walk the standing
+    #: foot rests while the pelvis passes over it and the swing foot moves at about twice the
+    #: pelvis's speed. Measured (2026-11-25): Bandai's walk keeps its left foot within 2 cm of
+    #: the floor in 308 of 324 frames, 30 % of them faster than the pelvis (up to 3 m/s);
+    #: planted there, the G1 fell 1.3 m behind the person. ganimator's person slides its
+    #: standing feet at 0.4-0.5 m/s (a third of its pelvis speed): those stay planted. The
+    #: 1 m/s floor keeps the AMASS jog's slow-pelvis steps planted (0.3 m/s: ground J 98 → 92 %).
+    #: A sweeping foot's sole is held on the floor, free horizontally (``stance_targets``).
+    sweep_ratio: float = 1.0
+    sweep_floor_m_s: float = 1.0
     #: Weight of the planting rows per foot (per m², shared by its sole points).
     weight: float = 1.0e6
     #: Sole points: hull vertices of the foot link within this height of its lowest one (m).
@@ -71,9 +85,15 @@ class StanceTargets:
         return StanceTargets(np.zeros(0, np.intp), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
 
 
-def demonstrated_stance(foot_lowest_z: np.ndarray, contact_m: float) -> np.ndarray:
-    """(T, F) stance flags from the person's foot units' lowest surface heights (T, F) (m)."""
-    return np.maximum(foot_lowest_z, 0.0) < contact_m
+def demonstrated_stance(foot_lowest_z: np.ndarray, foot_speed: np.ndarray, pelvis_speed: np.ndarray,
+                        cfg: StanceConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(stance, sweep) flags (T, F) from the person's foot units' lowest surface heights (T, F)
+    (m), the horizontal speeds of their least-moving surface points (T, F) and of the pelvis
+    (T,) (m/s): a foot near the floor stands, unless it sweeps past the body
+    (``StanceConfig.sweep_ratio``)."""
+    near = np.maximum(foot_lowest_z, 0.0) < cfg.contact_m
+    fast = foot_speed > np.maximum(cfg.sweep_ratio * pelvis_speed, cfg.sweep_floor_m_s)[:, None]
+    return near & ~fast, near & fast
 
 
 def sole_points(hull_points: np.ndarray, band_m: float) -> np.ndarray:
@@ -126,20 +146,27 @@ def demonstrated_turns(ankle_pos_w: np.ndarray, ankle_rot_w: np.ndarray, toe_pos
 
 def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np.ndarray, ...],
                    floor: np.ndarray, previous: LinkFrames | None, touch_m: float,
-                   turns: FootTurns | None = None, ramp_frames: int = 1) -> StanceTargets:
+                   turns: FootTurns | None = None, ramp_frames: int = 1,
+                   sweep: np.ndarray | None = None) -> StanceTargets:
     """Targets of frame t. ``stance`` (T, F); ``feet`` (F,) link indices; ``soles`` per foot its
     sole points (link frame); ``floor`` (F,) m the height a sole point must sit at; ``previous``
     the link frames of frame t − 1's solution (None on the first frame); ``turns`` the
     demonstrated stance turns (None: every standing foot holds still); ``ramp_frames`` the
-    frames over which a new stance's weight grows to its full value."""
+    frames over which the weight grows to its full value once a foot comes near the floor;
+    ``sweep`` (T, F) the frames where a foot skims the floor while it swings: its sole stays on
+    the floor, free to move horizontally (like a touch-down)."""
     links, points, targets, gains = [], [], [], []
+    near = stance if sweep is None else stance | sweep
     for f, link in enumerate(feet):
-        if not stance[t, f]:
+        if not near[t, f]:
             continue
+        since = 1  # frames on or near the floor so far, t included
+        while since < ramp_frames and t - since >= 0 and near[t - since, f]:
+            since += 1
         pts = soles[f]
         target = np.full((len(pts), 3), np.nan)
         target[:, 2] = floor[f]
-        if previous is not None and t > 0 and stance[t - 1, f]:
+        if stance[t, f] and previous is not None and t > 0 and stance[t - 1, f]:
             prev_w = pts @ previous.rot[link].T + previous.pos[link]
             touched = prev_w[:, 2] < floor[f] + touch_m
             if touched.any():
@@ -151,9 +178,6 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
                     centre = (previous.rot[link] @ pivot + previous.pos[link])[:2]
                     held = centre + (held - centre) @ np.array([[c, s], [-s, c]])
                 target[:, :2] = held
-        since = 1  # frames of this stance so far, t included
-        while since < ramp_frames and t - since >= 0 and stance[t - since, f]:
-            since += 1
         links.append(np.full(len(pts), link, np.intp))
         points.append(pts)
         targets.append(target)

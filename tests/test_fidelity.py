@@ -83,6 +83,26 @@ def _open_box(size=(0.3, 0.25, 0.2)) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(box.vertices), np.asarray(box.faces[~top])
 
 
+def test_a_foot_near_the_floor_stands_unless_it_sweeps_past_the_body():
+    """Stance needs the foot within 2 cm of the floor and no faster than the pelvis (or 1 m/s);
+    a foot skimming the floor faster than that sweeps: held on the floor, free horizontally."""
+    from retarget.stance import StanceConfig, demonstrated_stance, stance_targets
+
+    low = np.array([[0.005, 0.005], [0.010, 0.030], [0.015, 0.001], [0.0, 0.0]])  # (T, F) m
+    foot_speed = np.array([[0.05, 0.10], [2.50, 0.20], [1.30, 1.30], [0.90, 0.90]])  # m/s
+    pelvis_speed = np.array([1.2, 1.2, 1.2, 0.2])  # m/s
+    stance, sweep = demonstrated_stance(low, foot_speed, pelvis_speed, StanceConfig())
+    assert stance.tolist() == [[True, True], [False, False], [False, False], [True, True]]
+    assert sweep.tolist() == [[False, False], [True, False], [True, True], [False, False]]
+    assert not (stance & sweep).any()
+
+    sole = np.array([[0.1, 0.02, -0.03], [-0.05, 0.02, -0.03], [0.1, -0.02, -0.03]])
+    t = stance_targets(stance, 1, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, 0.002,
+                       sweep=sweep)
+    assert np.all(t.link == 7) and len(t.link) == 3  # only the sweeping foot has rows at t = 1
+    assert np.isnan(t.target_w[:, :2]).all() and np.allclose(t.target_w[:, 2], 0.002)  # z held, xy free
+
+
 def test_an_open_five_faced_box_is_retargeted_as_a_shell_with_a_warning():
     from retarget.meshes import SHELL_THICKNESS_M
 

@@ -85,9 +85,12 @@ def test_two_workers_give_the_same_references_as_one(tiny, tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
     assert main(_args(str(tiny), "--out", str(one), "--mode", "robot-only")) == 0
     assert main(_args(str(tiny), "--out", str(two), "--mode", "robot-only", "--workers", "2")) == 0
-    for name in ("walk_a.npz", "walk_b.npz"):  # to 1e-12, see test_the_same_demonstration_gives_the_same_reference
+    # to 1e-10 rad: a problem built after another was solved in the same process differs by
+    # ~1e-15 at its first frame (README, Known limitations), which the SQP's active-set choices
+    # grow to 1.3-1.8e-12 rad over this clip (measured 2026-11-25); a real difference is far larger
+    for name in ("walk_a.npz", "walk_b.npz"):
         np.testing.assert_allclose(Reference.load(one / name).joint_pos, Reference.load(two / name).joint_pos,
-                                   rtol=0, atol=1e-12)
+                                   rtol=0, atol=1e-10)
 
 
 def test_scaled_mode_scales_the_human_and_pins_the_object():
