@@ -403,13 +403,9 @@ def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: n
     parts = [[names.index(p) for p in G1_LINK_PARTS[foot]] for foot in robot.FEET]
     vertices = [np.concatenate([np.einsum("tij,vj->tvi", part_rot_w[:, k], scale * np.asarray(demo.surface.vertices[k]))
                                 + part_pos_w[:, k, None] for k in ks], axis=1) for ks in parts]
-    T = len(part_pos_w)
-    pelvis_speed = (np.linalg.norm(np.gradient(part_pos_w[:, 0, :2], 1.0 / demo.fps, axis=0), axis=1) if T > 1
-                    else np.zeros(T))
-    foot_speed = (np.stack([least_moving_speed(v, demo.fps) for v in vertices], axis=1) if T > 1
-                  else np.zeros((T, len(vertices))))
-    stance, sweep = demonstrated_stance(np.stack([v[..., 2].min(axis=1) for v in vertices], axis=1), foot_speed,
-                                        pelvis_speed, cfg)
+    stance, sweep = demonstrated_stance(np.stack([v[..., 2].min(axis=1) for v in vertices], axis=1),
+                                        np.stack([least_moving_speed(v, demo.fps) for v in vertices], axis=1),
+                                        least_moving_speed(part_pos_w[:, :1], demo.fps), cfg)
     boxes = np.stack([[s[:, :2].min(axis=0), s[:, :2].max(axis=0)] for s in soles])
     turns = demonstrated_turns(part_pos_w[:, [ks[0] for ks in parts]], part_rot_w[:, [ks[0] for ks in parts]],
                                part_pos_w[:, [ks[1] for ks in parts]], vertices, stance, boxes, cfg.pivot_min_rad)

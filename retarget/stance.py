@@ -156,12 +156,13 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
     ``sweep`` (T, F) the frames where a foot skims the floor while it swings: its sole stays on
     the floor, free to move horizontally (like a touch-down)."""
     links, points, targets, gains = [], [], [], []
-    near = stance if sweep is None else stance | sweep
+    window = slice(max(t - max(ramp_frames, 1) + 1, 0), t + 1)  # the frames the ramp looks back on
+    near = stance[window] if sweep is None else stance[window] | sweep[window]
     for f, link in enumerate(feet):
-        if not near[t, f]:
+        if not near[-1, f]:
             continue
         since = 1  # frames on or near the floor so far, t included
-        while since < ramp_frames and t - since >= 0 and near[t - since, f]:
+        while since < len(near) and near[-1 - since, f]:
             since += 1
         pts = soles[f]
         target = np.full((len(pts), 3), np.nan)

@@ -20,7 +20,10 @@ import numpy as np
 
 
 def least_moving_speed(vertices_w: np.ndarray, fps: float) -> np.ndarray:
-    """Horizontal speed (m/s) of the slowest vertex per frame; vertices_w (T, V, 3) world."""
+    """Horizontal speed (m/s) of the slowest vertex per frame; vertices_w (T, V, 3) world
+    (zero for a single frame)."""
+    if len(vertices_w) < 2:
+        return np.zeros(len(vertices_w))
     vel_xy = np.gradient(vertices_w[..., :2], 1.0 / fps, axis=0)
     return np.linalg.norm(vel_xy, axis=-1).min(axis=1)
 
