@@ -28,7 +28,7 @@ from envs.mdp.objects import _Geometry, proximity_gate
 from envs.mdp.state import ObjectState
 from envs.objects import object_qpos
 from otr_gym.reference import InvalidReferenceError, Reference
-from otr_gym.rotations import quat_apply_inverse
+from otr_gym.rotations import quat_apply, quat_apply_inverse
 
 
 def _cfg(**command) -> BoxEnvCfg:
@@ -361,3 +361,42 @@ def test_a_box_the_reference_hand_starts_inside_is_narrowed_on_the_grasped_axis_
 
     assert left_hand_gap(before).max() < -0.005  # the reference hand starts inside the box
     assert np.quantile(left_hand_gap(task), 0.25) >= -1e-3  # after the fit it starts (at most) touching it
+
+
+def test_a_box_held_between_both_hands_at_its_bottom_edges_is_narrowed_between_the_hands_not_in_height(
+        box_reference_geometry, tmp_path):
+    # OMOMO's lift: both hands at the box's bottom edges. Their points lie nearest to the bottom
+    # face, yet the box is squeezed between them (y here); narrowing the height instead would lift
+    # the box's bottom off the floor it rests on in the reference (3.2 cm on sub3_largebox_003).
+    ref = Reference.load(box_reference_geometry)
+    hands = ref.body_index(["left_wrist_yaw_link", "right_wrist_yaw_link"])
+    points = ref.body_pos_w[0, hands] + quat_apply(ref.body_quat_w[0, hands], np.array([0.11, 0.0, 0.0]))
+    half = np.array([0.1, points[0, 1] + 0.01, 0.12])  # each hand point 1 cm inside a side face (y)
+    box = ref.objects[0]
+    floor = np.array([0.6, 0.0, half[2]])
+    between = np.array([points[:, 0].mean(), 0.0, points[:, 2].mean() + half[2]])  # hands at the bottom face
+    keys = [(0, floor), (39, floor), (49, np.array([0.9, 0.0, 1.2])), (60, between), (99, between),
+            (104, np.array([0.9, 0.6, 1.2])), (110, box.pos_w[110] + [0.0, 0.0, half[2] - BOX_HALF_M]),
+            (150, box.pos_w[150] + [0.0, 0.0, half[2] - BOX_HALF_M])]
+    t = np.arange(ref.num_frames)
+    box.pos_w = np.stack([np.interp(t, [k for k, _ in keys], [p[i] for _, p in keys]) for i in range(3)], axis=1)
+    box.lin_vel_w = np.gradient(box.pos_w, 1.0 / ref.fps, axis=0)
+    mesh = trimesh.creation.box(extents=2 * half)
+    box.mesh_vertices, box.mesh_faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    path = ref.save(tmp_path / "bottom_grasp.npz")
+    assert np.all(np.argmax(np.abs(points - between) / half, axis=-1) == 2)  # the bottom face is the nearest
+
+    cfg = load_box_config(overrides={"objects": {"grasp_fit": False}})
+    before = make_box_task(path, 1, "mujoco", "cpu", cfg=cfg, evaluation=True).scene.moving[0].shapes[0]
+    task = make_box_task(path, 1, "mujoco", "cpu", evaluation=True)
+    fitted = task.scene.moving[0]
+    world_axis = np.argmax(np.abs(quat_apply(np.broadcast_to(before.quat_wxyz, (3, 4)), np.eye(3))), axis=-1)
+    lateral, vertical = int(np.flatnonzero(world_axis == 1)[0]), int(np.flatnonzero(world_axis == 2)[0])
+    assert np.flatnonzero(fitted.grasp_shrink_m).tolist() == [lateral] and fitted.grasp_shrink_m[lateral] > 0.02
+    assert fitted.shapes[0].half_extents[vertical] == pytest.approx(half[2], abs=1e-3)
+    # ... so the box stays on its reference height on the floor (frame 0: the start frame)
+    task.reset()
+    for _ in range(10):
+        task.step(torch.zeros(1, 29))
+    box_state = task.tracking_state.objects
+    assert abs(box_state.pos_w[0, 0, 2].item() - box_state.ref_pos_w[0, 0, 2].item()) < 3e-3

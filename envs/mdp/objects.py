@@ -37,7 +37,7 @@ from envs.collision import BoxShape
 from envs.config import ObjectsCfg
 from envs.objects import GROUND_GEOM, SceneObjects
 from otr_gym.reference import Reference
-from otr_gym.rotations import quat_apply, quat_apply_inverse
+from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_mul
 
 #: Upper bound handed to mj_geomDistance (m): anything farther is "far", which is all a window needs.
 _FAR_M = 0.5
@@ -98,40 +98,60 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
     A reference is retargeted against the object's *surface* and the robot's *visual* hand;
     the simulation collides the hand's capsule (fatter than the hand) with the fitted box (an
     enclosing box, wider than a scan's bulging sides). On our OMOMO large-box reference both
-    add up to 3.5 cm of penetration per hand (median inside the hand windows), so every reset
-    inside a grasp would eject the box. The grasped axis is the box axis whose faces are
-    nearest to the reference hand points in most frames where a hand is inside the box; its
-    half-extent shrinks (both faces, the centre stays) by the ``grasp_fit_quantile`` of those
-    penetration depths, at most by half.
-    Only that axis: a box lifted at its bottom edges (OMOMO's) keeps its height, so it still
-    rests on the floor and the table where the reference has it. The mass stays. Other shapes
-    are kept; ``objects`` itself is returned when nothing changes.
+    add up to 3.1 cm of penetration per hand (median inside the hand windows), so every reset
+    inside a grasp would eject the box. The grasped axis is the box axis the hands squeeze
+    along: in frames where two hands are inside the box, the axis of their separation (in the
+    box frame); in frames with one hand inside, the axis whose faces are nearest to it. The box
+    axis that stands vertical while the object rests on a support (inside a support window,
+    from the reference geometry) is never the grasped one: hands under a box's bottom edges
+    (OMOMO's lift) would otherwise vote for it, and narrowing it would lift the box's bottom
+    face off the floor (3.2 cm on OMOMO ``sub3_largebox_003``: the box then rests that much
+    below its reference). The grasped axis's half-extent shrinks (both faces, the centre stays)
+    by the ``grasp_fit_quantile`` of those frames' penetration depths, at most by half. The
+    height stays, so the box still rests on the floor and the table where the reference has
+    it. The mass stays. Other shapes are kept; ``objects`` itself is returned when nothing
+    changes.
     """
     geometry = _Geometry(model, objects, cfg)
     moving = [i for i, o in enumerate(objects.objects) if not o.static]
     static = [i for i, o in enumerate(objects.objects) if o.static]
     depth: dict[int, list[list[float]]] = {k: [[], [], []] for k in range(len(moving))}
+    resting: dict[int, np.ndarray] = {k: np.zeros(3) for k in range(len(moving))}  # votes for the vertical axis
     for ref in refs:
-        hand_d, _ = geometry.distances(ref, moving, static, hands=True)
+        hand_d, support_d = geometry.distances(ref, moving, static, hands=True)
         target = _hand_points_in_object(ref, moving, cfg)  # (T, H, M, 3)
         for k, i in enumerate(moving):
             shapes = objects.objects[i].shapes
             if len(shapes) != 1 or not isinstance(shapes[0], BoxShape):
                 continue
             box = shapes[0]
+            # the box axis that stands vertical in the frames the object rests on a support
+            rests = (support_d[:, k] < cfg.support_threshold_m).any(-1)
+            if rests.any():
+                box_quat_w = quat_mul(ref.objects[i].quat_w[rests], box.quat_wxyz)
+                up = np.abs(quat_apply_inverse(box_quat_w, np.broadcast_to([0.0, 0.0, 1.0], (len(box_quat_w), 3))))
+                resting[k] += np.bincount(np.argmax(up, axis=-1), minlength=3)
             local = quat_apply_inverse(np.broadcast_to(box.quat_wxyz, target[:, :, k].shape[:-1] + (4,)),
                                        target[:, :, k] - box.pos)
             axis = np.argmax(np.abs(local) / box.half_extents, axis=-1)  # (T, H): the face the hand is at
             inside = hand_d[:, :, k] < 0.0
+            both = inside.sum(-1) >= 2
+            if both.any():  # two hands inside: they squeeze along their separation
+                h0, h1 = np.argsort(~inside, axis=-1, kind="stable")[:, :2].T
+                rows = np.arange(len(local))
+                apart = np.argmax(np.abs(local[rows, h0] - local[rows, h1]), axis=-1)
+                axis = np.where(both[:, None], apart[:, None], axis)
             for a in range(3):
                 depth[k][a].extend((-hand_d[:, :, k][inside & (axis == a)]).tolist())
     out, changed = list(objects.objects), False
     for k, i in enumerate(moving):
         obj = objects.objects[i]
-        counts = [len(d) for d in depth[k]]
-        if max(counts) < 5:
+        counts = np.array([len(d) for d in depth[k]], float)
+        if resting[k].any():
+            counts[int(np.argmax(resting[k]))] = -1.0  # never the axis the object stands on
+        if counts.max() < 5:
             continue
-        axis = int(np.argmax(counts))  # the grasped axis: the faces most hand frames are at
+        axis = int(np.argmax(counts))  # the grasped axis: the one most hand frames vote for
         box = obj.shapes[0]
         shrink = np.zeros(3)
         shrink[axis] = min(max(float(np.quantile(depth[k][axis], cfg.grasp_fit_quantile)), 0.0),
