@@ -14,6 +14,7 @@ from retarget.kinematics import NUM_LINKS
 from retarget.problem import ChannelTrack, Problem
 from retarget.qp_workspace import QPWorkspace
 from retarget.residuals import FIXED
+from retarget.stance import StanceTargets
 
 
 @dataclass
@@ -27,6 +28,7 @@ class SolverState:
     qp: QPWorkspace
     prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (q, obj_pos, obj_rot) of t − 1
     prev_demo: tuple[np.ndarray, np.ndarray] | None = None  # demonstrated object poses at t − 1
+    stance: StanceTargets | None = None  # planted-foot targets of t − 1 (their anchors)
 
 
 @dataclass

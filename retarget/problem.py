@@ -424,7 +424,9 @@ LINK_GRID_RESOLUTION_M = 0.005
 def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack:
     """The signed distance grids of the G1 links' visual meshes (link frames) out to
     ``reach_m``, stacked in BODY_NAMES order (links without a mesh have none); each grid is
-    cached on disk like the object grids."""
+    cached on disk like the object grids, one file per link mesh (its content hash in the name:
+    scoring on Unitree's original meshes, ``otr_gym.true_surface``, must not evict the shipped
+    meshes' grids, and the other way round)."""
     from retarget.geometry import VoxelGrid, build_sdf_grid, cached_arrays, default_cache_dir
 
     meshes = visual_meshes()
@@ -445,7 +447,7 @@ def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack
             if a["values"].shape != (int(np.prod(a["shape"])), 4) or not np.isfinite(a["values"]).all():
                 raise ValueError("inconsistent grid arrays")
 
-        a = cached_arrays(root / f"{name}.npz", key, build, check)
+        a = cached_arrays(root / f"{name}-{mesh.content_hash[:16]}.npz", key, build, check)
         grids.append(VoxelGrid(np.asarray(a["origin"], np.float64), LINK_GRID_RESOLUTION_M,
                                tuple(int(v) for v in a["shape"]), np.ascontiguousarray(a["values"], np.float64)))
     return GridStack(grids)

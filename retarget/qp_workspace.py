@@ -13,8 +13,9 @@ class QPWorkspace:
     multiple of ``pad`` so that sizes repeat.
 
     If ProxQP does not converge (linearised constraints in conflict within the trust region),
-    the step is re-solved asking penetrating rows only not to get worse, then without
-    constraint rows, so the SQP always moves; the trust-region test then judges the step.
+    the step is re-solved in elastic mode (``_solve_elastic``): every row gets a slack at a
+    price far above the objective's, so the step removes as much of the violation as the
+    boxes allow instead of giving the rows up. The trust-region test then judges the step.
     """
 
     def __init__(self, eps_abs: float, warm_start: bool = False, pad: int = 16) -> None:
@@ -29,10 +30,29 @@ class QPWorkspace:
         x, ok = self._solve(H, g, C, lower, box_lo, box_hi)
         if not ok:
             self.failures += 1
-            x, ok = self._solve(H, g, C, np.minimum(lower, 0.0), box_lo, box_hi)
-        if not ok:
-            x, _ = self._solve(H, g, C[:0], lower[:0], box_lo, box_hi)
+            x = self._solve_elastic(H, g, C, lower, box_lo, box_hi)
         return x
+
+    def _solve_elastic(self, H, g, C, lower, box_lo, box_hi) -> np.ndarray:
+        """min ½xᵀHx + gᵀx + ρ Σ s + ½ρ‖s‖² s.t. C x + s ≥ lower, s ≥ 0, box_lo ≤ x ≤ box_hi.
+
+        Always feasible (the boxes contain 0). ρ = 100 × (1 + max diag H) per m of slack: a
+        millimetre of remaining violation costs a tenth of the stiffest term's curvature, more
+        than any step inside the trust region can gain (measured on the woodchair carry, where
+        dropping the rows instead let the hands 4.8 mm into the seat). Before this, a failed
+        QP was re-solved without its constraint rows."""
+        n, m = H.shape[0], C.shape[0]
+        if m == 0:
+            return self._solve(H, g, C, lower, box_lo, box_hi)[0]
+        rho = 100.0 * (1.0 + float(np.abs(np.diag(H)).max()))
+        H_e = np.zeros((n + m, n + m))
+        H_e[:n, :n] = H
+        H_e[n:, n:] = rho * np.eye(m)
+        g_e = np.concatenate([g, np.full(m, rho)])
+        C_e = np.hstack([C, np.eye(m)])
+        x, _ = self._solve(H_e, g_e, C_e, lower, np.concatenate([box_lo, np.zeros(m)]),
+                           np.concatenate([box_hi, np.full(m, 1e20)]))
+        return x[:n]
 
     def _solve(self, H, g, C, lower, box_lo, box_hi) -> tuple[np.ndarray, bool]:
         self.solves += 1

@@ -63,7 +63,8 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
                       stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
                                             problem.surface_margin[problem.feet], previous,
                                             problem.stance_cfg.touch_m, problem.turns,
-                                            problem.stance_cfg.ramp_frames, problem.sweep))
+                                            problem.stance_cfg.ramp_frames, problem.sweep, state.stance,
+                                            problem.stance_cfg.anchor_slip_m))
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m
@@ -110,18 +111,16 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         chosen[lin.initial] = True
         chosen |= lin.constraints.value < eps
         restore = QPModel(lin, 0.0, 0.0, jac, np.eye(n), np.zeros(n), chosen)
-        failures = state.qp.failures
         delta = qp_step(problem, state, targets, restore, cfg.feasibility_trust_scale ** k, stats)
         stats.iterations += 1
         retract(problem, state, delta)
         lin = linearise(problem, state, targets, stats.timings, counts=counts, contact=contact)
-        if state.qp.failures > failures:
-            break  # the linearised constraints conflict (e.g. a pinned object in the hand's way)
     stats.active_pairs = lin.active_pairs
     stats.min_distance_m = lin.min_distance
     stats.min_self_distance_m = lin.min_self_distance
     state.prev = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
     state.prev_demo = (targets.obj_pos.copy(), targets.obj_rot.copy())
+    state.stance = targets.stance
     return stats
 
 

@@ -18,8 +18,11 @@ a term of its own, stiff enough to act as a constraint while the QP stays well p
   person's sole (fractions of its length and width along the foot's heading), is mapped to
   the same place on the G1 sole. Below ``pivot_min_rad`` per frame the foot holds still;
 * **targets**, per stance frame: the sole points that touched the floor (within ``touch_m``
-  of it) at the previous frame's solution keep that solution's horizontal position, turned
-  by Δψ about the mapped pivot, and stay on the floor; on the first stance frame
+  of it) at the previous frame's solution keep their horizontal position, turned by Δψ about
+  the mapped pivot, and stay on the floor. The position kept is the one the point was held
+  at (its anchor), not where the previous solution left it: a planted foot slips a fraction
+  of a millimetre per frame against the other terms, and chained from solution to solution
+  those slips added up to 1-3 cm/s of skate; on the first stance frame
   (touch-down), or when none touched, every sole point goes to the floor (a flat landing) and
   may move horizontally. The pivot point itself does not move, so the foot never slides. "On the floor"
   means at the link's surface margin above z = 0, so that Unitree's original sole, not only
@@ -68,6 +71,10 @@ class StanceConfig:
     #: The planting weight grows over the first frames of a stance (1/3, 2/3, 1): a foot that
     #: lands is brought to the floor over a few frames, not snapped to it in one.
     ramp_frames: int = 3
+    #: A held sole point keeps its anchor (where it was first held) while the solution stays
+    #: within this distance of it; a foot dragged farther (the leg at its reach, the person's
+    #: own foot sliding away) is held where it went instead of fighting the whole body (m).
+    anchor_slip_m: float = 0.002
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,9 @@ class StanceTargets:
     points: np.ndarray  # (k, 3) link frame (m)
     target_w: np.ndarray  # (k, 3) world (m); NaN = free
     gain: np.ndarray  # (k,) share of the full planting weight (the touch-down ramp)
+    #: per foot, the world xy (m) each of its sole points is held at (NaN: not held); the next
+    #: frame's targets start from these
+    anchors: tuple[np.ndarray, ...] = ()
 
     @staticmethod
     def empty() -> StanceTargets:
@@ -147,15 +157,19 @@ def demonstrated_turns(ankle_pos_w: np.ndarray, ankle_rot_w: np.ndarray, toe_pos
 def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np.ndarray, ...],
                    floor: np.ndarray, previous: LinkFrames | None, touch_m: float,
                    turns: FootTurns | None = None, ramp_frames: int = 1,
-                   sweep: np.ndarray | None = None) -> StanceTargets:
+                   sweep: np.ndarray | None = None, before: StanceTargets | None = None,
+                   slip_m: float = np.inf) -> StanceTargets:
     """Targets of frame t. ``stance`` (T, F); ``feet`` (F,) link indices; ``soles`` per foot its
     sole points (link frame); ``floor`` (F,) m the height a sole point must sit at; ``previous``
     the link frames of frame t − 1's solution (None on the first frame); ``turns`` the
     demonstrated stance turns (None: every standing foot holds still); ``ramp_frames`` the
     frames over which the weight grows to its full value once a foot comes near the floor;
     ``sweep`` (T, F) the frames where a foot skims the floor while it swings: its sole stays on
-    the floor, free to move horizontally (like a touch-down)."""
+    the floor, free to move horizontally (like a touch-down); ``before`` frame t − 1's targets
+    (their anchors: a point held then keeps that xy, not the previous solution's, unless the
+    solution slipped farther than ``slip_m`` from it: then it is held where it went)."""
     links, points, targets, gains = [], [], [], []
+    anchors = [np.full((len(sole), 2), np.nan) for sole in soles]
     window = slice(max(t - max(ramp_frames, 1) + 1, 0), t + 1)  # the frames the ramp looks back on
     near = stance[window] if sweep is None else stance[window] | sweep[window]
     for f, link in enumerate(feet):
@@ -172,13 +186,19 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
             touched = prev_w[:, 2] < floor[f] + touch_m
             if touched.any():
                 pts, target = pts[touched], target[touched]
-                held = prev_w[touched, :2]
+                held = prev_w[:, :2].copy()
+                if before is not None and before.anchors:
+                    slip = np.linalg.norm(held - before.anchors[f], axis=1)  # NaN where not held
+                    kept = slip < slip_m
+                    held[kept] = before.anchors[f][kept]
+                held = held[touched]
                 if turns is not None and turns.yaw[t, f] != 0.0:
                     c, s = np.cos(turns.yaw[t, f]), np.sin(turns.yaw[t, f])
                     pivot = np.r_[turns.pivot[t, f], soles[f][:, 2].min()]
                     centre = (previous.rot[link] @ pivot + previous.pos[link])[:2]
                     held = centre + (held - centre) @ np.array([[c, s], [-s, c]])
                 target[:, :2] = held
+                anchors[f][touched] = held
         links.append(np.full(len(pts), link, np.intp))
         points.append(pts)
         targets.append(target)
@@ -186,7 +206,7 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
     if not links:
         return StanceTargets.empty()
     return StanceTargets(np.concatenate(links), np.concatenate(points), np.concatenate(targets),
-                         np.concatenate(gains))
+                         np.concatenate(gains), tuple(anchors))
 
 
 def stance_rows(targets: StanceTargets, frames: LinkFrames, weight: float) -> Rows:

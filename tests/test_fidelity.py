@@ -103,6 +103,30 @@ def test_a_foot_near_the_floor_stands_unless_it_sweeps_past_the_body():
     assert np.isnan(t.target_w[:, :2]).all() and np.allclose(t.target_w[:, 2], 0.002)  # z held, xy free
 
 
+def test_a_planted_sole_point_keeps_its_anchor_unless_it_slipped_too_far():
+    """A held point's target is where it was held (its anchor), not the previous solution's
+    position, so sub-millimetre slips do not add up frame after frame; a point dragged farther
+    than ``anchor_slip_m`` is held where it went."""
+    from retarget.kinematics import LinkFrames
+    from retarget.stance import stance_targets
+
+    sole = np.array([[0.1, 0.02, -0.03], [-0.05, 0.02, -0.03]])
+    stance = np.ones((3, 1), dtype=bool)
+    feet, floor = np.array([0]), np.array([0.0])
+
+    def frames_at(x: float) -> LinkFrames:  # the foot link 3 cm up, its sole on the floor, at x
+        return LinkFrames(pos=np.array([[x, 0.0, 0.03]]), rot=np.eye(3)[None], jac=None)
+
+    first = stance_targets(stance, 1, feet, (sole,), floor, frames_at(0.0), 0.002, slip_m=0.002)
+    assert np.allclose(first.target_w[:, :2], sole[:, :2])  # held where the solution was
+    assert np.allclose(first.anchors[0], sole[:, :2])
+    kept = stance_targets(stance, 2, feet, (sole,), floor, frames_at(0.001), 0.002, before=first, slip_m=0.002)
+    assert np.allclose(kept.target_w[:, :2], sole[:, :2])  # 1 mm slip: back to the anchor
+    dragged = stance_targets(stance, 2, feet, (sole,), floor, frames_at(0.005), 0.002, before=first, slip_m=0.002)
+    assert np.allclose(dragged.target_w[:, :2], sole[:, :2] + [0.005, 0.0])  # 5 mm: re-anchored
+    assert np.allclose(dragged.anchors[0], sole[:, :2] + [0.005, 0.0])
+
+
 def test_an_open_five_faced_box_is_retargeted_as_a_shell_with_a_warning():
     from retarget.meshes import SHELL_THICKNESS_M
 

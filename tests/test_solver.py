@@ -132,3 +132,20 @@ def test_penetration_never_exceeds_0p3mm_on_a_synthetic_box_lift():
     assert checks.ground_penetration_mesh_m <= EPS_COL
     assert checks.object_min_height_m >= -EPS_COL
     assert checks.hand_contact_frames > 50 and checks.hand_hold >= 0.85
+
+
+def test_a_qp_with_conflicting_rows_still_satisfies_the_rows_it_can():
+    """Elastic mode: when a row cannot be met inside the step boxes, ProxQP fails; the re-solve
+    keeps every other row and meets the impossible one as far as the box allows (before, the
+    rows were dropped and the step ignored all of them)."""
+    from retarget.qp_workspace import QPWorkspace
+
+    ws = QPWorkspace(eps_abs=1e-9)
+    H, g = np.eye(2), np.zeros(2)
+    C = np.array([[1.0, 0.0], [0.0, 1.0]])
+    lower = np.array([0.5, 0.05])  # x0 ≥ 0.5 (beyond the box) and x1 ≥ 0.05 (feasible)
+    x = ws.solve(H, g, C, lower, np.array([-0.1, -0.1]), np.array([0.1, 0.1]))
+    assert ws.failures == 1
+    np.testing.assert_allclose(x, [0.1, 0.05], atol=1e-6)
+    ok = ws.solve(H, g, C[1:], lower[1:], np.array([-0.1, -0.1]), np.array([0.1, 0.1]))
+    assert ws.failures == 1 and np.allclose(ok, [0.0, 0.05], atol=1e-6)
