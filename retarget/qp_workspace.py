@@ -74,7 +74,7 @@ class QPWorkspace:
             # and the same solutions (to 2e-15) with these caps as with 1000 × 1500. A QP whose
             # linearised constraints conflict is not detected as infeasible: with the defaults it
             # took up to 40 s to give up (with 30 × 100, ≤ 0.5 s even at 1300 rows); ``solve`` then
-            # relaxes the rows as for any failure.
+            # re-solves it in elastic mode, as for any failure.
             qp.settings.max_iter = 30
             qp.settings.max_iter_in = 100
             qp.settings.initial_guess = (proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT if self.warm_start
