@@ -75,10 +75,17 @@ class BoxTrackingTask(TrackingTask):
         self._object_noise = torch.as_tensor(cfg.objects.reset_noise_pos_m, dtype=torch.float32, device=d)
         self._num_hands, self._num_objects = len(cfg.objects.hand_bodies), len(moving)
         self._num_supports = len(objects.support_names)
+        n = backend.num_worlds
+        # (N, M) mass and friction of each moving object per env: nominal, or this env's draw
+        self._object_mass = torch.tensor([o.mass_kg for o in scene.moving], device=d).expand(n, -1).clone()
+        self._object_friction = torch.tensor([o.friction for o in scene.moving], device=d).expand(n, -1).clone()
+        self._gravity_w = torch.as_tensor(backend.model.opt.gravity, dtype=torch.float32, device=d)
         super().__init__(cfg, motion, backend, seed=seed, autoreset=autoreset)
         if cfg.randomization.enabled:
-            randomize_objects(backend, [o.body for o in scene.moving], [o.mass_kg for o in scene.moving],
-                              cfg.objects.randomization, self.generator)
+            draws = randomize_objects(backend, moving, [o.mass_kg for o in scene.moving], cfg.objects.randomization,
+                                      self.generator)
+            for k, body in enumerate(moving):
+                self._object_friction[:, k], self._object_mass[:, k] = draws[body][:, 0], draws[body][:, 1]
 
     # ------------------------------------------------------------ hooks of TrackingTask
     def start_state(self, noise: bool | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -128,6 +135,8 @@ class BoxTrackingTask(TrackingTask):
             support_gate=lib.support_gate[rows],
             support_force_n=forces[:, n_hand:].reshape(-1, self._num_objects, self._num_supports).clone(),
             static_pos_w=lib.static_pos_w, static_quat_w=lib.static_quat_w,
+            grip_force_n=self._object_mass * torch.linalg.norm(lib.lin_acc_w[rows] - self._gravity_w, dim=-1)
+            / (self._num_hands * self._object_friction),
         ))
 
     def _log(self, terms, fired, s: TrackingState, valid: torch.Tensor) -> dict:

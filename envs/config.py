@@ -309,9 +309,11 @@ def _box_rewards() -> dict[str, RewardTermCfg]:
         # §4 FK object velocity tracking
         "object_lin_vel": RewardTermCfg("object_linear_velocity_error_exp", 0.5, {"sigma": 0.5}),
         "object_ang_vel": RewardTermCfg("object_angular_velocity_error_exp", 0.5, {"sigma": 0.3}),
-        # §4 HDMI force set-point per hand, gated by the robot–object windows
-        "hand_contact": RewardTermCfg("hand_contact_force_setpoint", 1.0, {
-            "sigma_pos_m": 0.3, "tolerance_m": 0.05, "force_threshold_n": 10.0, "sigma_force_n": 40.0, "gain": 5.0}),
+        # §4 HDMI force set-point per hand, gated by the robot–object windows; F_th sized to hold
+        # this env's box by friction at the reference's acceleration (×1.5), HDMI's 10 N at least
+        "hand_contact": RewardTermCfg("hand_grip_force_setpoint", 1.0, {
+            "sigma_pos_m": 0.3, "tolerance_m": 0.05, "sigma_force_n": 40.0, "gain": 5.0,
+            "min_force_n": 10.0, "max_force_n": 60.0, "safety": 1.5}),
         # object–support contact gated by the object–support windows (FK weight 0.5)
         "support_contact": RewardTermCfg("support_contact_force_setpoint", 0.5, {
             "force_threshold_n": 5.0, "sigma_force_n": 10.0, "gain": 5.0}),

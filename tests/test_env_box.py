@@ -153,7 +153,27 @@ def test_force_reward_rises_with_hand_box_force_inside_a_window_then_holds_at_th
     assert v[0] == pytest.approx(5.0) and v[0] > v[1] > v[2]
 
 
-def _object_state(hand_gate, hand_force_n, hand_offset_m) -> SimpleNamespace:
+def test_grip_set_point_is_the_force_that_holds_the_box_by_friction():
+    forces = torch.tensor([0.0, 10.0, 20.0, 29.0, 30.0, 45.0])
+    s = _object_state(hand_gate=torch.ones(len(forces), 2, 1), hand_force_n=forces[:, None, None].expand(-1, 2, 1),
+                      hand_offset_m=torch.zeros(len(forces)), grip_force_n=torch.full((len(forces), 1), 20.0))
+    value = reward_terms.hand_grip_force_setpoint(s, 0.3, 0.05, 40.0, 5.0, 10.0, 60.0, 1.5)
+    assert torch.all(value[1:5] > value[:4])  # rises up to F_th = 1.5 · 20 N
+    assert torch.allclose(value[4:], torch.full((2,), 5.0))
+
+
+def test_grip_force_is_mass_times_lift_acceleration_over_two_mu_per_env(box_reference):
+    task = make_box_task(box_reference, 4, "mujoco", "cpu")  # training: mass and friction drawn per env
+    task.reset(seed=0)
+    rows = task.command.rows
+    need = task.tracking_state.objects.grip_force_n[:, 0]
+    a = task.objects.lin_acc_w[rows, 0] - torch.tensor([0.0, 0.0, -9.81])
+    m, mu = task._object_mass[:, 0], task._object_friction[:, 0]
+    assert torch.allclose(need, m * torch.linalg.norm(a, dim=-1) / (2 * mu))
+    assert torch.all((m >= 1.0) & (m <= 3.0)) and torch.all((mu >= 0.5) & (mu <= 0.9)) and m.std() > 0
+
+
+def _object_state(hand_gate, hand_force_n, hand_offset_m, grip_force_n=None) -> SimpleNamespace:
     """A state with one box at the origin, both hands ``hand_offset_m`` (n,) from their targets."""
     n = hand_gate.shape[0]
     zeros3 = torch.zeros(n, 1, 3)
@@ -166,7 +186,7 @@ def _object_state(hand_gate, hand_force_n, hand_offset_m) -> SimpleNamespace:
                        ref_ang_vel_w=zeros3, hand_pos_w=hand, hand_target_w=target, hand_gate=hand_gate,
                        hand_force_n=hand_force_n, support_gate=torch.zeros(n, 1, 0),
                        support_force_n=torch.zeros(n, 1, 0), static_pos_w=torch.zeros(0, 3),
-                       static_quat_w=torch.zeros(0, 4)))
+                       static_quat_w=torch.zeros(0, 4), grip_force_n=grip_force_n))
 
 
 # ------------------------------------------------------------------ simulation

@@ -4,7 +4,8 @@ Per library row (frame ``t`` of clip ``c`` at row ``clip_start[c] + t``), for th
 objects, the H hands and the S supports (the ground when ``support_ground``, then the static
 objects):
 
-- object pose and velocity (world; wxyz; finite differences of the resampled poses);
+- object pose, velocity and linear acceleration (world; wxyz; finite differences of the
+  resampled poses);
 - ``hand_target_o`` (H, M, 3): the reference hand point p_eef (hand body origin + the hand
   offset in the hand frame) in the object's frame: placed on the *simulated* object it is the
   HDMI contact target, so the target moves with the box the robot actually holds;
@@ -32,6 +33,7 @@ from dataclasses import dataclass, fields, replace
 import mujoco
 import numpy as np
 import torch
+from scipy.ndimage import uniform_filter1d
 
 from envs.collision import BoxShape
 from envs.config import ObjectsCfg
@@ -39,6 +41,8 @@ from envs.objects import GROUND_GEOM, SceneObjects
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_mul
 
+#: Window of the moving average on the reference object acceleration (s).
+_ACC_SMOOTHING_S = 0.2
 #: Upper bound handed to mj_geomDistance (m): anything farther is "far", which is all a window needs.
 _FAR_M = 0.5
 
@@ -53,6 +57,7 @@ class ObjectLibrary:
     quat_w: torch.Tensor  # (F, M, 4) wxyz
     lin_vel_w: torch.Tensor  # (F, M, 3)
     ang_vel_w: torch.Tensor  # (F, M, 3) world
+    lin_acc_w: torch.Tensor  # (F, M, 3) m/s², finite differences of lin_vel_w, 0.2 s moving average
     hand_target_o: torch.Tensor  # (F, H, M, 3) reference hand point, object frame
     hand_gate: torch.Tensor  # (F, H, M) in [0, 1]
     support_gate: torch.Tensor  # (F, M, S) in [0, 1]
@@ -85,7 +90,7 @@ class ObjectLibrary:
             names=tuple(objects.objects[i].name for i in moving), support_names=tuple(supports),
             hand_bodies=tuple(cfg.hand_bodies), window_source=tuple(c["source"] for c in per_clip),
             pos_w=cat("pos"), quat_w=cat("quat"), lin_vel_w=cat("lin"), ang_vel_w=cat("ang"),
-            hand_target_o=cat("target"), hand_gate=cat("hand_gate"), support_gate=cat("support_gate"),
+            lin_acc_w=cat("acc"), hand_target_o=cat("target"), hand_gate=cat("hand_gate"), support_gate=cat("support_gate"),
             static_pos_w=const([objects.objects[i].pos_w for i in static], 3),
             static_quat_w=const([objects.objects[i].quat_w for i in static], 4),
         )
@@ -280,9 +285,13 @@ def _clip_arrays(ref: Reference, moving: list[int], static: list[int], geometry:
                         for j in range(flat.shape[1])], axis=1)
         return out.reshape(dist.shape)
 
+    lin = np.stack([o.lin_vel_w for o in tracks], axis=1)
+    # a 0.2 s moving average: the raw second differences of mocap poses swing ±13 m/s² frame to
+    # frame on our OMOMO box lift, a grip force that follows them would flicker
+    acc = np.gradient(lin, 1.0 / ref.fps, axis=0) if len(lin) > 1 else np.zeros_like(lin)
+    acc = uniform_filter1d(acc, size=max(int(round(_ACC_SMOOTHING_S * ref.fps)), 1), axis=0, mode="nearest")
     return {
-        "pos": pos, "quat": quat,
-        "lin": np.stack([o.lin_vel_w for o in tracks], axis=1), "ang": np.stack([o.ang_vel_w for o in tracks], axis=1),
+        "pos": pos, "quat": quat, "lin": lin, "acc": acc, "ang": np.stack([o.ang_vel_w for o in tracks], axis=1),
         "target": target, "hand_gate": gate(hand_d, cfg.proximity_threshold_m),
         "support_gate": gate(support_d, cfg.support_threshold_m),
         "source": "annotations" if annotated is not None else "geometry",

@@ -130,6 +130,22 @@ def hand_contact_force_setpoint(s: TrackingState, sigma_pos_m: float, tolerance_
     return (r * c * gain + (1.0 - c)).flatten(1).mean(-1)
 
 
+def hand_grip_force_setpoint(s: TrackingState, sigma_pos_m: float, tolerance_m: float, sigma_force_n: float,
+                             gain: float, min_force_n: float, max_force_n: float, safety: float) -> torch.Tensor:
+    """``hand_contact_force_setpoint`` with the set-point sized to hold the object by friction:
+    F_th = clip(safety · m‖a_ref − g‖/(H μ), min_force_n, max_force_n) per env and object, with
+    this env's object mass m and friction μ and the reference object's acceleration a_ref
+    (``ObjectState.grip_force_n``). A fixed 10 N lets a 1-3 kg box slide out of the hands as
+    the reference lifts it (2 × 0.5 × 10 N < 3 kg · 9.81 m/s²)."""
+    o = s.objects
+    f_th = (safety * o.grip_force_n).clamp(min_force_n, max_force_n)[:, None]  # (N, 1, M)
+    dist = torch.linalg.norm(o.hand_pos_w[:, :, None] - o.hand_target_w, dim=-1)  # (N, H, M)
+    r = torch.exp(-(dist - tolerance_m).clamp_min(0.0) / sigma_pos_m) * \
+        torch.exp((o.hand_force_n - f_th).clamp_max(0.0) / sigma_force_n)
+    c = o.hand_gate
+    return (r * c * gain + (1.0 - c)).flatten(1).mean(-1)
+
+
 def support_contact_force_setpoint(s: TrackingState, force_threshold_n: float, sigma_force_n: float,
                                    gain: float) -> torch.Tensor:
     """The same set-point for objects on their supports (table, ground): per object m and

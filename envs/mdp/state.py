@@ -42,6 +42,9 @@ class ObjectState:
     support_force_n: torch.Tensor  # (N, M, S) object–support contact force
     static_pos_w: torch.Tensor  # (K, 3) static objects (fixed)
     static_quat_w: torch.Tensor  # (K, 4)
+    #: (N, M) N: the normal force each of the H hands must press with for friction alone to give
+    #: the object its reference acceleration, m‖a_ref − g‖/(H μ), with this env's mass and friction
+    grip_force_n: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
