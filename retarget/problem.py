@@ -35,8 +35,10 @@ from retarget.meshes import as_trimesh, object_mesh
 from retarget.probes import (
     PointClusters,
     ProbeSet,
+    SurfaceGuards,
     hull_guard_points,
     human_probes,
+    object_surface_guards,
     robot_guard_points,
     robot_probes,
     robot_self_points,
@@ -142,6 +144,8 @@ class ChannelTrack:
     #: Object substitution (retarget.substitute): the captured object whose surface the
     #: demonstrated triples are measured on, and the map of its witnesses onto ``channel``.
     substitution: Substitution | None = None
+    #: The surface's own points against the links (faces pressed into a link's hollows).
+    surface_guards: SurfaceGuards | None = None
 
     @property
     def is_ground(self) -> bool:
@@ -348,7 +352,8 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                                          quat_to_matrix(obj.quat_w),
                                          lower, upper, hull_guard_points(ch.mesh.vertices, guard_spacing_m,
                                                                          along_edges=True),
-                                         cached_margin(ch.grid, ch.mesh, MARGIN_REACH_M, cache_dir), swap))
+                                         cached_margin(ch.grid, ch.mesh, MARGIN_REACH_M, cache_dir), swap,
+                                         object_surface_guards(ch.mesh)))
             if free:
                 objects.append(FreeObject(obj.name, len(channels) - 1, ch.surface.points,
                                           None if swap is None else swap.demonstrated_points(ch.surface.points)))

@@ -3,8 +3,9 @@
 Every row is a pair of 6-vectors φ on the two bodies it involves (``retarget.residuals.Rows``).
 Cost rows: interaction residuals of robot probes and object probes against every channel
 (eq. m-energy) and the style rows (eq. m-esty-o). Constraint rows: non-penetration of probes,
-hull and vertex guards against every channel, object guard points against the links' own
-distance grids, and capsule self-collision (eq. m-qp-col).
+hull and vertex guards against every channel, object guard points (hull, edges, and the deepest
+surface point per cluster) against the links' own distance grids, and capsule self-collision
+(eq. m-qp-col).
 
 Hot-path economy: links are culled per channel by bounding spheres before any probe is posed,
 probes are posed with one matrix product per link, and the constraint rows that seed a QP are
@@ -22,7 +23,7 @@ from otr_gym import robot
 from retarget.geometry import ProximityQuery
 from retarget.iterate import SectionTimer, SolverState, channel_pose
 from retarget.kinematics import NUM_LINKS, LinkFrames
-from retarget.probes import posed_in_frames
+from retarget.probes import posed_in_frames, segment_argmin
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
     FIXED,
@@ -411,6 +412,9 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
         # within the link's sampling gap, comes close to the object
         links = np.flatnonzero(link_min[c] < problem.sampling_gap + margin)
         con.add(object_guard_rows(problem, fr, links, track, rot_c, pos_c, check), len(problem.channels) + c)
+        # out to the constraint margin only: out to the check margin the carry linearised 424
+        # surface rows per call (+16 ms per frame); a step that pushes a face in is restored
+        con.add(object_surface_rows(problem, fr, links, track, rot_c, pos_c, margin), len(problem.channels) + c)
     tm.lap("object_guards")
 
     min_dist = min((float(r.value.min()) for r in con.rows if len(r)), default=np.inf)
@@ -474,6 +478,50 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track
     a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[keep])  # ∇d in the world
     phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
     return Rows(d[keep] - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
+
+
+def object_surface_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
+                        rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+    """The deepest of each cluster of the object's surface points (``ChannelTrack.surface_guards``)
+    against every link of ``links`` it comes within ``reach`` of, from the link's distance grid.
+
+    Where the object's flat face meets a hollow of a link (a wrist's inner side, a palm) neither
+    the link's vertices nor the object's hull guards are the deepest point: a face point is. One
+    row per cluster and link, at its deepest point, keeps every point of the cluster out at the
+    iterate: one row per 4 cm² of touching face instead of 16. Rows as ``object_guard_rows``.
+    """
+    sg = track.surface_guards
+    grids = problem.link_grids
+    links = links[grids.has_grid[links]]
+    if sg is None or len(links) == 0:
+        return Rows.empty()
+    cl = sg.clusters
+    centre_w = np.einsum("lij,lj->li", fr.rot[links], problem.link_center[links]) + fr.pos[links]
+    pair, pair_cl = sg.clusters_near((centre_w - pos_c) @ rot_c, problem.link_radius[links] + reach)
+    if len(pair_cl) == 0:
+        return Rows.empty()
+    # the object as one more body after the links, so that one pass poses points into link frames
+    rot = np.concatenate([fr.rot, rot_c[None]])
+    pos = np.concatenate([fr.pos, pos_c[None]])
+    obj = np.full(len(pair_cl), len(fr.rot), np.intp)
+    link = links[pair]
+    _, c_l = posed_in_frames(cl.centre[pair_cl], obj, link, rot, pos)
+    d, _, inside = grids.distance(c_l, link)
+    near = np.flatnonzero(inside & (d - cl.radius[pair_cl] < reach))
+    if len(near) == 0:
+        return Rows.empty()
+    link, pair_cl = link[near], pair_cl[near]
+    idx = cl.points_of(pair_cl)
+    count = cl.offsets[pair_cl + 1] - cl.offsets[pair_cl]
+    point_link = np.repeat(link, count)
+    x, local = posed_in_frames(sg.points[idx], np.full(len(idx), len(fr.rot), np.intp), point_link, rot, pos)
+    d, grad, inside = grids.distance(local, point_link)
+    deepest = segment_argmin(np.where(inside, d, np.inf), count)
+    deepest = deepest[d[deepest] < reach]
+    link, x = point_link[deepest], x[deepest]
+    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[deepest])
+    phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
+    return Rows(d[deepest] - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
 
 
 def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach: float) -> Rows:

@@ -149,3 +149,58 @@ def test_a_qp_with_conflicting_rows_still_satisfies_the_rows_it_can():
     np.testing.assert_allclose(x, [0.1, 0.05], atol=1e-6)
     ok = ws.solve(H, g, C[1:], lower[1:], np.array([-0.1, -0.1]), np.array([0.1, 0.1]))
     assert ws.failures == 1 and np.allclose(ok, [0.0, 0.05], atol=1e-6)
+
+
+def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_cluster_at_its_deepest_point():
+    """A flat face pressed into a link away from the object's hull guards (corners, edges): only
+    the surface guards see it (OMOMO box ×1.3: a face point 23 mm from the nearest guard went
+    1.5 mm into a wrist unseen). One row per cluster of surface points that comes within reach of
+    the link, at the point the link's distance grid puts deepest: the culling by cluster spheres
+    loses none of them."""
+    from dataclasses import replace
+
+    import trimesh
+
+    from otr_gym.robot_geometry import visual_meshes
+    from retarget.meshes import TriMesh, as_trimesh, signed_distance
+    from retarget.probes import hull_guard_points, object_surface_guards
+    from retarget.rows import object_guard_rows, object_surface_rows
+
+    problem = build_problem(resample_demonstration(clip("box_carry", 130, 133), 50.0))
+    state = new_state(problem)
+    fr = problem.kin.frames(state.data, state.q)
+    name = "right_wrist_yaw_link"
+    hand = robot.BODY_NAMES.index(name)
+    link_mesh = visual_meshes()[name]
+    low = (link_mesh.vertices @ fr.rot[hand].T + fr.pos[hand])[:, 2].argmin()
+    lowest = link_mesh.vertices[low] @ fr.rot[hand].T + fr.pos[hand]
+    top = lowest[2] + 0.003  # the board's top face 3 mm above the hand's lowest point
+    box = trimesh.creation.box(extents=(1.0, 1.0, 0.02))
+    board = TriMesh(np.asarray(box.vertices) + [lowest[0], lowest[1], top - 0.01], np.asarray(box.faces), "board")
+    guards = object_surface_guards(board)
+    track = replace(problem.channels[1], body=FIXED, surface_guards=guards,
+                    guards=hull_guard_points(board.vertices, 0.008, along_edges=True))
+    links, reach = np.arange(NUM_LINKS), problem.solver.check_margin_m
+    hull_rows = object_guard_rows(problem, fr, links, track, np.eye(3), np.zeros(3), reach)
+    assert hand not in hull_rows.body_b, "the board's corners and edges are 0.5 m from the hand"
+
+    # the face under the hand every millimetre, measured exactly against the link's mesh: it cuts in
+    g = np.arange(-0.06, 0.0605, 0.001)
+    face = np.stack(np.meshgrid(lowest[0] + g, lowest[1] + g, [top]), -1).reshape(-1, 3)
+    hand_mesh = as_trimesh(link_mesh.vertices, link_mesh.faces, name)
+    assert signed_distance(hand_mesh, (face - fr.pos[hand]) @ fr.rot[hand])[0].min() < -0.002
+
+    rows = object_surface_rows(problem, fr, links, track, np.eye(3), np.zeros(3), reach)
+    at_hand = np.flatnonzero(rows.body_b == hand)
+    assert np.all(rows.body_a[at_hand] == FIXED)
+    # every guard point against the hand's grid, without any culling
+    local = (guards.points - fr.pos[hand]) @ fr.rot[hand]
+    d, _, inside = problem.link_grids.distance(local, np.full(len(local), hand))
+    d = np.where(inside, d, np.inf)
+    cluster = np.repeat(np.arange(len(guards.clusters.radius)), np.diff(guards.clusters.offsets))
+    within = np.unique(cluster[d < reach])
+    deepest = np.array([d[cluster == k].min() for k in within])
+    assert d.min() < 0.0, "the grid sees the face inside the hand"
+    assert len(at_hand) == len(within)
+    np.testing.assert_allclose(np.sort(rows.value[at_hand] + problem.surface_margin[hand]), np.sort(deepest),
+                               atol=1e-12)
