@@ -221,7 +221,7 @@ class ObjectRandomizationCfg:
     """Object randomisation at start-up, one draw per env (§6 HS object; see configs/env/box.yaml
     for why the friction range is not HS's raw numbers)."""
 
-    friction_range: tuple[float, float] = (0.5, 0.9)
+    friction_range: tuple[float, float] = (0.8, 1.0)  # rubber hands on cardboard
     mass_add_kg: tuple[float, float] = (0.0, 2.0)
     inertia_scale: tuple[float, float] = (0.5, 1.5)  # §6 HS: Ixx ×[0.5, 1.5]; all three axes, one draw
 
@@ -232,8 +232,11 @@ class ObjectsCfg:
 
     mass_kg: float = 1.0  # moving objects; inertia from their collision geometry at uniform density
     #: Sliding friction of the objects. Object geoms get MuJoCo priority 1, so this coefficient
-    #: (not the max with the robot's 1.0) governs their contacts with hands, table and ground.
-    friction: float = 0.7
+    #: (not the max with the robot's 1.0) governs their contacts with hands, table and ground:
+    #: rubber hands on cardboard (below 0.8 the robot put on the OMOMO large-box reference loses
+    #: the box; configs/env/box.yaml has the measurements).
+    friction: float = 1.0
+    #: The pair's condim (objects' priority): 6 measured no better than 3 on that lift.
     condim: int = 3
     #: An object whose position moves less than this over every clip (and whose orientation
     #: turns less than ``static_tolerance_rad``) is static: a fixed body (tables).
@@ -242,18 +245,18 @@ class ObjectsCfg:
     overrides: dict[str, ObjectOverrideCfg] = field(default_factory=dict)
     collision: CollisionCfg = field(default_factory=CollisionCfg)
     #: Hands of the contact terms: bodies and the contact point p_eef in their frame (m): the
-    #: centre of the G1 hand's collision capsule.
+    #: centre of the G1 hand's (retargeting) collision capsule, between palm and fingers.
     hand_bodies: tuple[str, ...] = robot.HANDS
     hand_point_offset_m: tuple[float, float, float] = (0.11, 0.0, 0.0)
     #: Robot–object proximity windows: hand surface within this distance (m) of the object
     #: surface, from the reference's contact annotations (``contact_distance``) when present,
-    #: else from the reference geometry (hand collision capsule vs. object collision shapes).
+    #: else from the reference geometry (hand collision boxes vs. object collision shapes).
     proximity_threshold_m: float = 0.05
     #: Object–support windows (supports: static objects and the ground): object collision
     #: shapes within this distance (m) of the support's in the reference (geometry only).
     support_threshold_m: float = 0.02
     support_ground: bool = True
-    #: Narrow box objects where the reference's hands (their collision capsules) would start
+    #: Narrow box objects where the reference's hands (their collision boxes) would start
     #: inside them (envs.mdp.objects.fit_boxes_to_grasps): by this quantile of the depths.
     grasp_fit: bool = True
     grasp_fit_quantile: float = 0.75

@@ -170,7 +170,7 @@ def test_grip_force_is_mass_times_lift_acceleration_over_two_mu_per_env(box_refe
     a = task.objects.lin_acc_w[rows, 0] - torch.tensor([0.0, 0.0, -9.81])
     m, mu = task._object_mass[:, 0], task._object_friction[:, 0]
     assert torch.allclose(need, m * torch.linalg.norm(a, dim=-1) / (2 * mu))
-    assert torch.all((m >= 1.0) & (m <= 3.0)) and torch.all((mu >= 0.5) & (mu <= 0.9)) and m.std() > 0
+    assert torch.all((m >= 1.0) & (m <= 3.0)) and torch.all((mu >= 0.8) & (mu <= 1.0)) and m.std() > 0
 
 
 def _object_state(hand_gate, hand_force_n, hand_offset_m, grip_force_n=None) -> SimpleNamespace:
@@ -193,10 +193,10 @@ def _object_state(hand_gate, hand_force_n, hand_offset_m, grip_force_n=None) -> 
 def test_hand_box_force_is_measured_when_the_box_is_pressed_on_the_hand(box_reference):
     task = make_box_task(box_reference, 1, "mujoco", "cpu", evaluation=True)
     task.reset(seed=0)
-    row = task.motion.clip_start[0] + 80  # box 1 cm left of the left hand
+    row = task.motion.clip_start[0] + 80  # box 1.95 cm left of the left hand's palm box
     qpos, qvel = task.backend.qpos.clone(), task.backend.qvel.clone()
     qpos[0, 36:39] = task.objects.pos_w[row, 0]
-    qpos[0, 37] -= 0.02  # 1 cm into the hand capsule
+    qpos[0, 37] -= 0.03  # 1 cm into the palm box
     qvel[0, 35:] = 0.0
     task.backend.reset(torch.ones(1, dtype=torch.bool), qpos, qvel)
     task.step(torch.zeros(1, 29))

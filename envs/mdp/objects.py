@@ -101,10 +101,11 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
     """Narrow box-shaped moving objects so that the reference's grasps do not start inside them.
 
     A reference is retargeted against the object's *surface* and the robot's *visual* hand;
-    the simulation collides the hand's capsule (fatter than the hand) with the fitted box (an
-    enclosing box, wider than a scan's bulging sides). On our OMOMO large-box reference both
-    add up to 3.1 cm of penetration per hand (median inside the hand windows), so every reset
-    inside a grasp would eject the box. The grasped axis is the box axis the hands squeeze
+    the simulation collides the hand's collision boxes (fatter than the hand at the thumb) with
+    the fitted box (an enclosing box, wider than a scan's bulging sides). On our OMOMO large-box
+    reference both add up to 1.4 cm of penetration per hand (the 0.75 quantile inside the hand
+    windows; 3.5 cm with the former single hand capsule), so every reset inside a grasp would
+    eject the box. The grasped axis is the box axis the hands squeeze
     along: in frames where two hands are inside the box, the axis of their separation (in the
     box frame); in frames with one hand inside, the axis whose faces are nearest to it. The box
     axis that stands vertical while the object rests on a support (inside a support window,
