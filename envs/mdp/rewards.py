@@ -135,8 +135,8 @@ def hand_grip_force_setpoint(s: TrackingState, sigma_pos_m: float, tolerance_m: 
     """``hand_contact_force_setpoint`` with the set-point sized to hold the object by friction:
     F_th = clip(safety · m‖a_ref − g‖/(H μ), min_force_n, max_force_n) per env and object, with
     this env's object mass m and friction μ and the reference object's acceleration a_ref
-    (``ObjectState.grip_force_n``). A fixed 10 N lets a 1-3 kg box slide out of the hands as
-    the reference lifts it (2 × 0.5 × 10 N < 3 kg · 9.81 m/s²)."""
+    (``ObjectState.grip_force_n``). A fixed 10 N is less than friction needs to hold a 3 kg box
+    (2 × 0.5 × 10 N < 3 kg · 9.81 m/s²)."""
     o = s.objects
     f_th = (safety * o.grip_force_n).clamp(min_force_n, max_force_n)[:, None]  # (N, 1, M)
     dist = torch.linalg.norm(o.hand_pos_w[:, :, None] - o.hand_target_w, dim=-1)  # (N, H, M)
