@@ -411,10 +411,12 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
         # a link can hold an object's edge only where its own surface, hence an area probe
         # within the link's sampling gap, comes close to the object
         links = np.flatnonzero(link_min[c] < problem.sampling_gap + margin)
-        con.add(object_guard_rows(problem, fr, links, track, rot_c, pos_c, check), len(problem.channels) + c)
+        links = links[problem.link_grids.has_grid[links]]
+        con.add(object_guard_rows(problem, fr, centre_w, links, track, rot_c, pos_c, check), len(problem.channels) + c)
         # out to the constraint margin only: out to the check margin the carry linearised 424
         # surface rows per call (+16 ms per frame); a step that pushes a face in is restored
-        con.add(object_surface_rows(problem, fr, links, track, rot_c, pos_c, margin), len(problem.channels) + c)
+        con.add(object_surface_rows(problem, fr, centre_w, links, track, rot_c, pos_c, margin),
+                len(problem.channels) + c)
     tm.lap("object_guards")
 
     min_dist = min((float(r.value.min()) for r in con.rows if len(r)), default=np.inf)
@@ -452,38 +454,43 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
                          contact)
 
 
-def object_guard_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
-                      rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
-    """Distances of an object's guard points (corners, edge points) to every robot link closer
-    than ``reach``, from each link's own distance grid (link frame), in one stacked query.
+def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
+                      track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+    """Distances of an object's guard points (corners, edge points) to every robot link of
+    ``links`` (links with a distance grid) closer than ``reach``, from each link's own grid
+    (link frame), in one stacked query; ``centre_w`` (L, 3) the links' bounding-sphere centres.
 
     A box edge pressed into an arm lies between the arm's probes; seen from the arm's distance
     field it is the deepest point. Rows, grouped by link: body A the object (FIXED when
     pinned), body B the link.
     """
-    grids = problem.link_grids
-    links = links[grids.has_grid[links]]
     g_w = track.guards @ rot_c.T + pos_c
-    centre_w = np.einsum("lij,lj->li", fr.rot[links], problem.link_center[links]) + fr.pos[links]
-    gap = np.linalg.norm(centre_w[:, None, :] - g_w[None], axis=2) - problem.link_radius[links, None]  # (l, G)
+    gap = np.linalg.norm(centre_w[links, None, :] - g_w[None], axis=2) - problem.link_radius[links, None]  # (l, G)
     pair_link, guard = np.nonzero(gap < reach)
     if len(guard) == 0:
         return Rows.empty()
     link = links[pair_link]
     x = g_w[guard]
     local = np.einsum("kji,kj->ki", fr.rot[link], x - fr.pos[link])  # Rᵀ(x − o)
-    d, grad, inside = grids.distance(local, link)
+    d, grad, inside = problem.link_grids.distance(local, link)
     keep = np.flatnonzero(inside & (d < reach))
-    link, x = link[keep], x[keep]
-    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[keep])  # ∇d in the world
+    return _object_link_rows(problem, fr, track, pos_c, link[keep], x[keep], d[keep], grad[keep])
+
+
+def _object_link_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, pos_c: np.ndarray, link: np.ndarray,
+                      x: np.ndarray, d: np.ndarray, grad: np.ndarray) -> Rows:
+    """Rows d − m_link ≥ 0 of object points ``x`` (k, 3, world) at grid distances ``d`` (k,) with
+    gradients ``grad`` (k, 3, link frame) from ``link`` (k,): body A the object, body B the link."""
+    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad)  # ∇d in the world
     phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
-    return Rows(d[keep] - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
+    return Rows(d - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
 
 
-def object_surface_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, track: ChannelTrack,
-                        rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
+                        track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
     """The deepest of each cluster of the object's surface points (``ChannelTrack.surface_guards``)
-    against every link of ``links`` it comes within ``reach`` of, from the link's distance grid.
+    against every link of ``links`` it comes within ``reach`` of, from the link's distance grid
+    (arguments as ``object_guard_rows``).
 
     Where the object's flat face meets a hollow of a link (a wrist's inner side, a palm) neither
     the link's vertices nor the object's hull guards are the deepest point: a face point is. One
@@ -491,21 +498,18 @@ def object_surface_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, tra
     iterate: one row per 4 cm² of touching face instead of 16. Rows as ``object_guard_rows``.
     """
     sg = track.surface_guards
-    grids = problem.link_grids
-    links = links[grids.has_grid[links]]
     if sg is None or len(links) == 0:
         return Rows.empty()
-    cl = sg.clusters
-    centre_w = np.einsum("lij,lj->li", fr.rot[links], problem.link_center[links]) + fr.pos[links]
-    pair, pair_cl = sg.clusters_near((centre_w - pos_c) @ rot_c, problem.link_radius[links] + reach)
+    cl, grids = sg.clusters, problem.link_grids
+    pair, pair_cl = sg.clusters_near((centre_w[links] - pos_c) @ rot_c, problem.link_radius[links] + reach)
     if len(pair_cl) == 0:
         return Rows.empty()
     # the object as one more body after the links, so that one pass poses points into link frames
     rot = np.concatenate([fr.rot, rot_c[None]])
     pos = np.concatenate([fr.pos, pos_c[None]])
-    obj = np.full(len(pair_cl), len(fr.rot), np.intp)
+    obj = len(fr.rot)
     link = links[pair]
-    _, c_l = posed_in_frames(cl.centre[pair_cl], obj, link, rot, pos)
+    _, c_l = posed_in_frames(cl.centre[pair_cl], np.full(len(pair_cl), obj, np.intp), link, rot, pos)
     d, _, inside = grids.distance(c_l, link)
     near = np.flatnonzero(inside & (d - cl.radius[pair_cl] < reach))
     if len(near) == 0:
@@ -514,14 +518,11 @@ def object_surface_rows(problem: Problem, fr: LinkFrames, links: np.ndarray, tra
     idx = cl.points_of(pair_cl)
     count = cl.offsets[pair_cl + 1] - cl.offsets[pair_cl]
     point_link = np.repeat(link, count)
-    x, local = posed_in_frames(sg.points[idx], np.full(len(idx), len(fr.rot), np.intp), point_link, rot, pos)
+    x, local = posed_in_frames(sg.points[idx], np.full(len(idx), obj, np.intp), point_link, rot, pos)
     d, grad, inside = grids.distance(local, point_link)
     deepest = segment_argmin(np.where(inside, d, np.inf), count)
     deepest = deepest[d[deepest] < reach]
-    link, x = point_link[deepest], x[deepest]
-    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad[deepest])
-    phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
-    return Rows(d[deepest] - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
+    return _object_link_rows(problem, fr, track, pos_c, point_link[deepest], x[deepest], d[deepest], grad[deepest])
 
 
 def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach: float) -> Rows:

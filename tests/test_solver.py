@@ -180,8 +180,9 @@ def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_clust
     guards = object_surface_guards(board)
     track = replace(problem.channels[1], body=FIXED, surface_guards=guards,
                     guards=hull_guard_points(board.vertices, 0.008, along_edges=True))
-    links, reach = np.arange(NUM_LINKS), problem.solver.check_margin_m
-    hull_rows = object_guard_rows(problem, fr, links, track, np.eye(3), np.zeros(3), reach)
+    links, reach = np.flatnonzero(problem.link_grids.has_grid), problem.solver.check_margin_m
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    hull_rows = object_guard_rows(problem, fr, centre_w, links, track, np.eye(3), np.zeros(3), reach)
     assert hand not in hull_rows.body_b, "the board's corners and edges are 0.5 m from the hand"
 
     # the face under the hand every millimetre, measured exactly against the link's mesh: it cuts in
@@ -190,7 +191,7 @@ def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_clust
     hand_mesh = as_trimesh(link_mesh.vertices, link_mesh.faces, name)
     assert signed_distance(hand_mesh, (face - fr.pos[hand]) @ fr.rot[hand])[0].min() < -0.002
 
-    rows = object_surface_rows(problem, fr, links, track, np.eye(3), np.zeros(3), reach)
+    rows = object_surface_rows(problem, fr, centre_w, links, track, np.eye(3), np.zeros(3), reach)
     at_hand = np.flatnonzero(rows.body_b == hand)
     assert np.all(rows.body_a[at_hand] == FIXED)
     # every guard point against the hand's grid, without any culling

@@ -12,7 +12,7 @@ from functools import cache
 
 import torch
 
-from envs.mdp.state import TrackingState
+from envs.mdp.state import ObjectState, TrackingState
 from otr_gym import robot
 from otr_gym.rotations import quat_error_angle
 
@@ -122,10 +122,15 @@ def hand_contact_force_setpoint(s: TrackingState, sigma_pos_m: float, tolerance_
     the hand–object force reaches F_th. p_tgt is the reference hand point placed on the
     simulated object; outside a window (c = 0) the value is 1 whatever the hand does.
     """
-    o = s.objects
+    return _hand_setpoint(s.objects, force_threshold_n, sigma_pos_m, tolerance_m, sigma_force_n, gain)
+
+
+def _hand_setpoint(o: ObjectState, f_th: float | torch.Tensor, sigma_pos_m: float, tolerance_m: float,
+                   sigma_force_n: float, gain: float) -> torch.Tensor:
+    """The HDMI value r·c·gain + (1 − c) for a set-point ``f_th`` (N; a number or (N, 1, M))."""
     dist = torch.linalg.norm(o.hand_pos_w[:, :, None] - o.hand_target_w, dim=-1)  # (N, H, M)
     r = torch.exp(-(dist - tolerance_m).clamp_min(0.0) / sigma_pos_m) * \
-        torch.exp((o.hand_force_n - force_threshold_n).clamp_max(0.0) / sigma_force_n)
+        torch.exp((o.hand_force_n - f_th).clamp_max(0.0) / sigma_force_n)
     c = o.hand_gate
     return (r * c * gain + (1.0 - c)).flatten(1).mean(-1)
 
@@ -137,13 +142,8 @@ def hand_grip_force_setpoint(s: TrackingState, sigma_pos_m: float, tolerance_m: 
     this env's object mass m and friction μ and the reference object's acceleration a_ref
     (``ObjectState.grip_force_n``). A fixed 10 N is less than friction needs to hold a 3 kg box
     (2 × 0.5 × 10 N < 3 kg · 9.81 m/s²)."""
-    o = s.objects
-    f_th = (safety * o.grip_force_n).clamp(min_force_n, max_force_n)[:, None]  # (N, 1, M)
-    dist = torch.linalg.norm(o.hand_pos_w[:, :, None] - o.hand_target_w, dim=-1)  # (N, H, M)
-    r = torch.exp(-(dist - tolerance_m).clamp_min(0.0) / sigma_pos_m) * \
-        torch.exp((o.hand_force_n - f_th).clamp_max(0.0) / sigma_force_n)
-    c = o.hand_gate
-    return (r * c * gain + (1.0 - c)).flatten(1).mean(-1)
+    f_th = (safety * s.objects.grip_force_n).clamp(min_force_n, max_force_n)[:, None]  # (N, 1, M)
+    return _hand_setpoint(s.objects, f_th, sigma_pos_m, tolerance_m, sigma_force_n, gain)
 
 
 def support_contact_force_setpoint(s: TrackingState, force_threshold_n: float, sigma_force_n: float,
