@@ -288,6 +288,33 @@ def _cell_axis(x, origin, inv_resolution, upper):
     return int(c), min(max(u - c, 0.0), 1.0), u >= 0.0 and u <= upper
 
 
+@numba.njit(cache=True, inline="always")
+def _cell_inside(u, upper):
+    """:func:`_cell_axis` for a grid coordinate u known to lie in [0, upper]: the cell's lower
+    node index and the position in the cell (the same arithmetic)."""
+    c = min(max(np.floor(u), 0.0), upper - 1.0)
+    return int(c), min(max(u - c, 0.0), 1.0)
+
+
+@numba.njit(cache=True, inline="always")
+def _trilinear_phi(phi, r, sx, sy, fx, fy, fz):
+    """One channel of :func:`_trilinear_kernel` at the cell whose lower node is row r (node
+    strides sx, sy, 1) and position (fx, fy, fz) in it: the value and its partials along x, y,
+    z per cell width (the same arithmetic; unused partials are optimised away when inlined)."""
+    c000, c001 = phi[r], phi[r + 1]
+    c010, c011 = phi[r + sy], phi[r + sy + 1]
+    c100, c101 = phi[r + sx], phi[r + sx + 1]
+    c110, c111 = phi[r + sx + sy], phi[r + sx + sy + 1]
+    dz00, dz01, dz10, dz11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110
+    cz00, cz01 = c000 + fz * dz00, c010 + fz * dz01
+    cz10, cz11 = c100 + fz * dz10, c110 + fz * dz11
+    dy0, dy1 = cz01 - cz00, cz11 - cz10
+    cyz0, cyz1 = cz00 + fy * dy0, cz10 + fy * dy1
+    dyz0, dyz1 = dz00 + fy * (dz01 - dz00), dz10 + fy * (dz11 - dz10)
+    dx = cyz1 - cyz0
+    return cyz0 + fx * dx, dx, dy0 + fx * (dy1 - dy0), dyz0 + fx * (dyz1 - dyz0)
+
+
 class GridStack:
     """The Φ columns of several voxel grids (each in its own frame) in one flat table, so that
     points spread over many grids (guard points against every nearby robot link) take one

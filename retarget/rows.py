@@ -17,13 +17,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba
 import numpy as np
 
 from otr_gym import robot
-from retarget.geometry import ProximityQuery
+from retarget.geometry import ProximityQuery, _cell_inside, _trilinear_phi
 from retarget.iterate import SectionTimer, SolverState, channel_pose
 from retarget.kinematics import NUM_LINKS, LinkFrames
-from retarget.probes import posed_in_frames, segment_argmin
+from retarget.probes import _pose_in_frame, posed_in_frames, segment_argmin
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
     FIXED,
@@ -543,25 +544,65 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
         return Rows.empty()
     ordered = np.concatenate([close, close[:, ::-1]])
     clusters, grids, vg = problem.self_clusters, problem.link_grids, problem.self_points
-    cl = clusters.of_bodies(ordered[:, 0])
-    per_pair = clusters.body_offsets[ordered[:, 0] + 1] - clusters.body_offsets[ordered[:, 0]]
-    cl_b = np.repeat(ordered[:, 1], per_pair)
-    _, c_b = posed_in_frames(clusters.centre[cl], clusters.body[cl], cl_b, fr.rot, fr.pos)
-    d, _, inside = grids.distance(c_b, cl_b)
-    near = np.flatnonzero(inside & (d - clusters.radius[cl] < reach))
-    if len(near) == 0:
-        return Rows.empty()
-    idx = clusters.points_of(cl[near])
-    link_b = np.repeat(cl_b[near], clusters.offsets[cl[near] + 1] - clusters.offsets[cl[near]])
-    link_a = vg.body[idx]
-    x_w, x_b = posed_in_frames(vg.points[idx], link_a, link_b, fr.rot, fr.pos)
-    d, grad, inside = grids.distance(x_b, link_b)
-    keep = np.flatnonzero(inside & (d < reach))
-    link_a, link_b, x_w = link_a[keep], link_b[keep], x_w[keep]
-    a_w = np.einsum("kij,kj->ki", fr.rot[link_b], grad[keep])
+    # one pass over (pair, cluster, vertex) in that order; a cluster or vertex outside b's grid
+    # is dropped before its cell is read
+    first = clusters.offsets[clusters.body_offsets[ordered[:, 0]]]
+    bound = int(np.sum(clusters.offsets[clusters.body_offsets[ordered[:, 0] + 1]] - first))
+    link_a, link_b = np.empty(bound, np.intp), np.empty(bound, np.intp)
+    x_w, d, grad = np.empty((bound, 3)), np.empty(bound), np.empty((bound, 3))
+    k = _self_mesh_points(np.ascontiguousarray(ordered, np.intp), clusters.centre, clusters.radius, clusters.offsets,
+                          clusters.body_offsets, vg.points, fr.rot, fr.pos, float(reach), grids.phi.ravel(),
+                          grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset,
+                          link_a, link_b, x_w, d, grad)
+    link_a, link_b, x_w, d, grad = link_a[:k], link_b[:k], x_w[:k], d[:k], grad[:k]
+    a_w = np.einsum("kij,kj->ki", fr.rot[link_b], grad)
     phi = twist_factors(a_w, x_w, fr.pos[link_a], fr.pos[link_b])
-    value = d[keep] - problem.surface_margin[link_a] - problem.surface_margin[link_b]
-    return Rows(value, np.ones(len(keep)), phi, link_a, link_b)
+    value = d - problem.surface_margin[link_a] - problem.surface_margin[link_b]
+    return Rows(value, np.ones(k), phi, link_a, link_b)
+
+
+@numba.njit(cache=True)
+def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, rot, pos, reach, phi, origin,
+                      inv_resolution, upper, strides, offset, out_a, out_b, out_x, out_d, out_g):
+    """The vertices of ``self_mesh_rows``: per ordered pair (a, b), each cluster of a whose centre
+    lies in b's grid with Φ − radius < reach, then each of its vertices in b's grid with
+    Φ < reach; writes the vertex's links, world position, Φ and ∂Φ/∂x (b's frame) and returns
+    the count. Point by point the arithmetic of ``posed_in_frames`` and ``GridStack.distance``
+    (the same bits), without their intermediate arrays, and a point outside b's grid is
+    dropped before any grid node is read."""
+    k = 0
+    for p in range(ordered.shape[0]):
+        a, b = ordered[p, 0], ordered[p, 1]
+        inv = inv_resolution[b]
+        o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
+        up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
+        sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
+        for c in range(body_offsets[a], body_offsets[a + 1]):
+            _, _, _, x0, x1, x2 = _pose_in_frame(centre, c, a, b, rot, pos)
+            u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+            if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
+                continue
+            ix, fx = _cell_inside(u0, up0)
+            iy, fy = _cell_inside(u1, up1)
+            iz, fz = _cell_inside(u2, up2)
+            val, _, _, _ = _trilinear_phi(phi, offset[b] + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
+            if not val - radius[c] < reach:
+                continue
+            for v in range(offsets[c], offsets[c + 1]):
+                w0, w1, w2, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+                u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+                if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
+                    continue
+                ix, fx = _cell_inside(u0, up0)
+                iy, fy = _cell_inside(u1, up1)
+                iz, fz = _cell_inside(u2, up2)
+                val, g0, g1, g2 = _trilinear_phi(phi, offset[b] + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
+                if val < reach:
+                    out_a[k], out_b[k], out_d[k] = a, b, val
+                    out_x[k, 0], out_x[k, 1], out_x[k, 2] = w0, w1, w2
+                    out_g[k, 0], out_g[k, 1], out_g[k, 2] = g0 * inv, g1 * inv, g2 * inv
+                    k += 1
+    return k
 
 
 #: The root link (pelvis): its origin is the floating base's.
