@@ -9,6 +9,7 @@ share the same maths.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 try:
@@ -178,6 +179,12 @@ def quat_to_matrix(q):
 def matrix_to_quat(m):
     """Rotation matrix (…, 3, 3) → unit quaternion (…, 4), w ≥ 0 (Shepperd's method)."""
     m = _as_float(m)
+    if isinstance(m, np.ndarray) and m.dtype == np.float64 and m.ndim >= 2 and m.shape[-2:] == (3, 3):
+        # the same arithmetic, element by element, without ~40 small array operations
+        flat = np.ascontiguousarray(m).reshape(-1, 3, 3)
+        out = np.empty((len(flat), 4))
+        _matrix_to_quat_f64(flat, out)
+        return out.reshape(*m.shape[:-2], 4)
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     candidates = _stack([
         _stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]]),
@@ -193,6 +200,38 @@ def matrix_to_quat(m):
         best = np.argmax(diag, axis=-1)
         q = np.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
     return quat_canonical(quat_normalize(q))
+
+
+@numba.njit(cache=True)
+def _matrix_to_quat_f64(m, out):
+    """:func:`matrix_to_quat` of float64 matrices (n, 3, 3) into out (n, 4): Shepperd's
+    candidate of the largest diagonal term (the first on ties, as argmax), normalised by the
+    square root of its squares summed in order, then w ≥ 0."""
+    for i in range(m.shape[0]):
+        m00, m01, m02 = m[i, 0, 0], m[i, 0, 1], m[i, 0, 2]
+        m10, m11, m12 = m[i, 1, 0], m[i, 1, 1], m[i, 1, 2]
+        m20, m21, m22 = m[i, 2, 0], m[i, 2, 1], m[i, 2, 2]
+        d0, d1, d2, d3 = 1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22
+        best, top = 0, d0
+        if d1 > top or np.isnan(d1) and not np.isnan(top):
+            best, top = 1, d1
+        if d2 > top or np.isnan(d2) and not np.isnan(top):
+            best, top = 2, d2
+        if d3 > top or np.isnan(d3) and not np.isnan(top):
+            best, top = 3, d3
+        if best == 0:
+            q0, q1, q2, q3 = d0, m21 - m12, m02 - m20, m10 - m01
+        elif best == 1:
+            q0, q1, q2, q3 = m21 - m12, d1, m10 + m01, m02 + m20
+        elif best == 2:
+            q0, q1, q2, q3 = m02 - m20, m10 + m01, d2, m21 + m12
+        else:
+            q0, q1, q2, q3 = m10 - m01, m02 + m20, m21 + m12, d3
+        norm = np.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+        q0, q1, q2, q3 = q0 / norm, q1 / norm, q2 / norm, q3 / norm
+        if q0 < 0:
+            q0, q1, q2, q3 = -q0, -q1, -q2, -q3
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = q0, q1, q2, q3
 
 
 def so3_exp(r):

@@ -15,6 +15,7 @@ import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 
 from retarget.geometry import VoxelGrid, cached_arrays, default_cache_dir
@@ -36,11 +37,24 @@ class ErrorMargin:
 
     def at(self, x: np.ndarray) -> np.ndarray:
         """Margin (N,) at points (N, 3) in the channel frame (0 outside the grid)."""
-        u = np.floor((x - self.origin) / self.resolution).astype(np.intp)
-        inside = np.all((u >= 0) & (u < np.array(self.cells)), axis=1)
-        cx, cy, cz = self.cells
-        row = np.clip(u[:, 0], 0, cx - 1) * (cy * cz) + np.clip(u[:, 1], 0, cy - 1) * cz + np.clip(u[:, 2], 0, cz - 1)
-        return np.where(inside, self.values[row], 0.0)
+        out = np.empty(len(x))
+        _margin_at(np.ascontiguousarray(x, np.float64), self.origin, float(self.resolution),
+                   np.array(self.cells, np.intp), self.values, out)
+        return out
+
+
+@numba.njit(cache=True)
+def _margin_at(x, origin, resolution, cells, values, out):
+    """out[i] ← the value of the cell holding x[i] (cells (cx, cy, cz), C order), 0 outside."""
+    cy, cz = cells[1], cells[2]
+    for i in range(x.shape[0]):
+        u0 = int(np.floor((x[i, 0] - origin[0]) / resolution))
+        u1 = int(np.floor((x[i, 1] - origin[1]) / resolution))
+        u2 = int(np.floor((x[i, 2] - origin[2]) / resolution))
+        if 0 <= u0 < cells[0] and 0 <= u1 < cy and 0 <= u2 < cz:
+            out[i] = values[u0 * (cy * cz) + u1 * cz + u2]
+        else:
+            out[i] = 0.0
 
 
 def interpolation_margin(grid: VoxelGrid, mesh: TriMesh, reach_m: float, chunk: int = 200_000) -> ErrorMargin:

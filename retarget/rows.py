@@ -208,8 +208,8 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
                                         problem.guard_reach) if track.is_ground
                                        else (problem.vertex_guards, problem.vertex_anchor, problem.vertex_anchor_d,
                                              problem.vertex_reach))
-    gi = guards.indices_of(np.flatnonzero(near_links & (link_min - reach < margin)))
-    gi = gi[probe_d[anchor[gi]] - anchor_d[gi] < margin]
+    gi = _guards_within(guards.offsets, np.flatnonzero(near_links & (link_min - reach < margin)), anchor, anchor_d,
+                        probe_d, margin)
     if len(gi):
         gb = guards.body[gi]
         g_w = guards.posed_index(gi, fr.rot, fr.pos)
@@ -221,6 +221,25 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
                                 np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
                                 np.take(problem.surface_margin, body)), c)
     return pairs, link_min
+
+
+def _guards_within(offsets: np.ndarray, links: np.ndarray, anchor: np.ndarray, anchor_d: np.ndarray,
+                   probe_d: np.ndarray, margin: float) -> np.ndarray:
+    """(k,) the guard points of ``links`` (sorted) whose anchor's distance less their separation
+    is below ``margin`` (guard ranges ``offsets``), in order: one pass, no gathered arrays."""
+    out = np.empty(int(np.sum(offsets[links + 1] - offsets[links])), np.intp)
+    return out[:_guards_within_into(offsets, links, anchor, anchor_d, probe_d, float(margin), out)]
+
+
+@numba.njit(cache=True)
+def _guards_within_into(offsets, links, anchor, anchor_d, probe_d, margin, out):
+    k = 0
+    for link in links:
+        for g in range(offsets[link], offsets[link + 1]):
+            if probe_d[anchor[g]] - anchor_d[g] < margin:
+                out[k] = g
+                k += 1
+    return k
 
 
 def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: list[_RobotPairs],
