@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from retarget.iterate import SolverState, channel_pose
+from retarget.iterate import SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS
 from retarget.problem import Problem
 from retarget.residuals import to_channel_frame
@@ -26,7 +26,7 @@ class FrameContacts:
 def frame_contacts(problem: Problem, state: SolverState, t: int) -> FrameContacts:
     """Per link and channel: the smallest signed distance over its probes and hull guard points
     (links whose bounding sphere stays beyond d̄ keep the clamped value d̄)."""
-    fr = problem.kin.frames(state.data, state.q)
+    fr = frames_at(problem, state, state.q)
     band = problem.band_m
     centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
     C = len(problem.channels)

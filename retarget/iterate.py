@@ -10,7 +10,7 @@ import numpy as np
 import pinocchio as pin
 
 from otr_gym.rotations import so3_exp
-from retarget.kinematics import NUM_LINKS
+from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.problem import ChannelTrack, Problem
 from retarget.qp_workspace import QPWorkspace
 from retarget.residuals import FIXED
@@ -29,6 +29,7 @@ class SolverState:
     prev: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (q, obj_pos, obj_rot) of t − 1
     prev_demo: tuple[np.ndarray, np.ndarray] | None = None  # demonstrated object poses at t − 1
     stance: StanceTargets | None = None  # planted-foot targets of t − 1 (their anchors)
+    recent_frames: list[tuple[bytes, LinkFrames]] = field(default_factory=list)  # ``frames_at``'s last answers
 
 
 @dataclass
@@ -53,6 +54,27 @@ class SectionTimer:
         now = time.perf_counter()
         self.stats[key] = self.stats.get(key, 0.0) + now - self.t
         self.t = now
+
+
+#: How many configurations ``frames_at`` remembers: a frame asks for the same one up to 4
+#: calls apart (the replanted feet, then the first linearisation; the solution, then its
+#: contact annotation, then the next frame's stance targets).
+RECENT_FRAMES = 4
+
+
+def frames_at(problem: Problem, state: SolverState, q: np.ndarray) -> LinkFrames:
+    """``problem.kin.frames`` at configuration q, answered again without recomputation when q
+    is one of the last ``RECENT_FRAMES`` asked (the same bits in, the same frames out). The
+    arrays are read-only: they may be shared by several callers."""
+    key = q.tobytes()
+    for k, fr in state.recent_frames:
+        if k == key:
+            return fr
+    fr = problem.kin.frames(state.data, q)
+    for a in (fr.rot, fr.pos, fr.jac):
+        a.flags.writeable = False
+    state.recent_frames = [(key, fr), *state.recent_frames[:RECENT_FRAMES - 1]]
+    return fr
 
 
 def channel_pose(state: SolverState, track: ChannelTrack, t: int) -> tuple[np.ndarray, np.ndarray]:

@@ -22,7 +22,7 @@ import numpy as np
 
 from otr_gym import robot
 from retarget.geometry import ProximityQuery, _cell_inside, _trilinear_phi
-from retarget.iterate import SectionTimer, SolverState, channel_pose
+from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import _pose_in_frame, posed_in_frames, segment_argmin
 from retarget.problem import ChannelTrack, Problem
@@ -397,7 +397,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     """
     tm = SectionTimer(timings)
     margin, check = problem.solver.constraint_margin_m, problem.solver.check_margin_m
-    fr = problem.kin.frames(state.data, state.q)
+    fr = frames_at(problem, state, state.q)
     centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
     tm.lap("kinematics")
 
@@ -451,15 +451,15 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     con.channel.append(2 * len(problem.channels) + self_rows.body_b)
     tm.lap("self_meshes")
 
-    surface = Rows.concat(con.rows)
     surface_channel = np.concatenate(con.channel).astype(np.intp) if con.channel else np.zeros(0, np.intp)
     tm.lap("constraint_selection")
 
     capsules = self_collision_rows(problem, fr, margin)
     min_self = min(float(capsules.value.min()) if len(capsules) else np.inf,
                    float(self_rows.value.min()) if len(self_rows) else np.inf)
-    # always in the QP, like the capsule rows (not counted as self-collision)
-    capsules = Rows.concat([capsules, base_step_rows(problem, state, targets.t, fr)])
+    # the surface rows, then the capsule rows and the base-step rows (always in the QP, like the
+    # capsule rows; not counted as self-collision), concatenated once
+    constraints = Rows.concat([*con.rows, capsules, base_step_rows(problem, state, targets.t, fr)])
     tm.lap("self_collision")
 
     cost.append(stance_rows(targets.stance, fr, problem.stance_cfg.weight))
@@ -469,7 +469,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]), np.concatenate([fr.rot[links], state.obj_rot]),
                           targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
     tm.lap("style_rows")
-    return Linearisation(Rows.concat(cost), Rows.concat([surface, capsules]), surface_channel, margin, fr,
+    return Linearisation(Rows.concat(cost), constraints, surface_channel, margin, fr,
                          total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]),
                          contact)
 

@@ -33,7 +33,7 @@ from otr_gym import robot
 from otr_gym.rotations import so3_exp, so3_log
 from retarget.arm_seed import arm_links, seed_arms
 from retarget.contact_annotation import frame_contacts
-from retarget.iterate import FrameStats, SectionTimer, SolverState, new_state, retract
+from retarget.iterate import FrameStats, SectionTimer, SolverState, frames_at, new_state, retract
 from retarget.kinematics import NUM_LINKS
 from retarget.problem import Problem
 from retarget.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
@@ -58,7 +58,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     """
     stats = FrameStats()
     tm = SectionTimer(stats.timings)
-    previous = problem.kin.frames(state.data, state.prev[0]) if state.prev is not None else None
+    previous = frames_at(problem, state, state.prev[0]) if state.prev is not None else None
     targets = replace(frame_targets(problem, t),
                       stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
                                             problem.surface_margin[problem.feet], previous,
@@ -185,11 +185,11 @@ def replant_feet(problem: Problem, state: SolverState, t: int, iterations: int =
     feet = [(f, link) for f, link in enumerate(problem.feet) if problem.stance[t - 1, f] and problem.stance[t, f]]
     if not feet:
         return
-    before = problem.kin.frames(state.data, state.prev[0])
+    before = frames_at(problem, state, state.prev[0])
     targets = {link: (before.rot[link].copy(), before.pos[link].copy()) for _, link in feet}
 
     def errors(q: np.ndarray) -> tuple[object, dict]:
-        fr = problem.kin.frames(state.data, q)
+        fr = frames_at(problem, state, q)
         return fr, {link: np.concatenate([targets[link][1] - fr.pos[link], so3_log(targets[link][0] @ fr.rot[link].T)])
                     for _, link in feet}
 
@@ -216,7 +216,7 @@ def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> floa
     two shells point both ways and the SQP cannot get it out again (deep squat: 2 cm deep for
     the rest of the clip). A seed is taken only if it leaves the meshes no deeper in each other
     than the plain warm start does."""
-    fr = problem.kin.frames(state.data, q)
+    fr = frames_at(problem, state, q)
     centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
     rows = self_mesh_rows(problem, fr, centre_w, problem.solver.constraint_margin_m)
     return float(rows.value.min()) if len(rows) else np.inf
