@@ -8,8 +8,9 @@ eq. m-triple) with the derivatives the SQP needs:
 * Φ (signed distance, m, negative inside) and W (witness = closest surface point) are
   sampled once on a 1 cm voxel grid covering the band d̄ = 15 cm around the surface, then
   interpolated trilinearly; ∂Φ/∂x and ∂W/∂x are the exact derivatives of that interpolant.
-  Node values come from :func:`retarget.meshes.signed_distance` (exact distance, sign from the
-  fast winding number), so scanned meshes with holes keep correct signs. Where a cell
+  Node values are those of :func:`retarget.meshes.signed_distance` (exact distance, sign from
+  the fast winding number), so scanned meshes with holes keep correct signs; they are built
+  for a fraction of its per-node cost by ``retarget.distance_grid``. Where a cell
   straddles the medial axis (inside an object near an edge, outside in a fold) a blend of
   witnesses lies off the surface; those witnesses are re-projected (see ``SDFChannel.query``).
 * ρ(w; ŵ), the geodesic distance between two surface points, is precomputed between all pairs
@@ -41,7 +42,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from otr_gym.io import save_npz
-from retarget.meshes import InvalidMeshError, TriMesh, load_mesh, object_mesh, signed_distance
+from retarget.distance_grid import grid_signed_distance, node_positions
+from retarget.meshes import InvalidMeshError, TriMesh, load_mesh, object_mesh
 
 #: Bumped whenever the content or layout of cached grids changes.
 _GRID_FORMAT = 2
@@ -191,8 +193,7 @@ class VoxelGrid:
     @property
     def node_positions(self) -> np.ndarray:
         """(nx·ny·nz, 3) node positions in row order (m)."""
-        axes = [self.origin[a] + self.resolution * np.arange(self.shape[a]) for a in range(3)]
-        return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        return node_positions(self.origin, self.resolution, self.shape)
 
     def nearest_node(self, x: np.ndarray) -> np.ndarray:
         """(N,) row of the node nearest to each point (clipped to the grid)."""
@@ -343,19 +344,19 @@ class GridStack:
         return val[:, 0], jac[:, 0], inside
 
 
-def build_sdf_grid(mesh: TriMesh, resolution_m: float, band_m: float) -> VoxelGrid:
+def build_sdf_grid(mesh: TriMesh, resolution_m: float, band_m: float, far_m: float | None = None) -> VoxelGrid:
     """Exact Φ and W at every node of the box bounds ± (band + 1.5 voxels) (mesh frame).
 
     The margin of a voxel puts every point closer than ``band_m`` to the surface inside a grid
     cell, so the band is fully covered; the extra half voxel keeps nodes off the faces of
     primitives whose sizes are whole centimetres (a node on the surface has no normal).
+    With ``far_m``, nodes provably farther outside hold a lower bound of Φ instead
+    (``retarget.distance_grid``): for grids read only closer than ``far_m`` − √3·resolution.
     """
     pad = band_m + 1.5 * resolution_m
     lo = mesh.bounds[0] - pad
     shape = tuple(int(s) for s in np.ceil((mesh.bounds[1] + pad - lo) / resolution_m).astype(int) + 1)
-    grid = VoxelGrid(lo, float(resolution_m), shape, np.zeros((0, 4)))
-    d, closest, _ = signed_distance(mesh, grid.node_positions)
-    return VoxelGrid(lo, float(resolution_m), shape, np.column_stack([d, closest]))
+    return VoxelGrid(lo, float(resolution_m), shape, grid_signed_distance(mesh, lo, float(resolution_m), shape, far_m))
 
 
 def _medial_cells(x: np.ndarray, d: np.ndarray, corner_pos: np.ndarray,

@@ -59,20 +59,33 @@ def _margin_at(x, origin, resolution, cells, values, out):
 
 def interpolation_margin(grid: VoxelGrid, mesh: TriMesh, reach_m: float, chunk: int = 200_000) -> ErrorMargin:
     """Measure the excess of ``grid`` over the exact signed distance of ``mesh`` in every cell
-    with a corner closer than ``reach_m`` to the surface (inside cells included)."""
+    with a corner closer than ``reach_m`` to the surface, on either side (cells wholly deeper
+    inside get none: 36 % of the OMOMO large box's, whose margin changed no reference)."""
     nx, ny, nz = grid.shape
     d = grid.values[:, 0].reshape(nx, ny, nz)
     corner_min = np.minimum.reduce([d[i:nx - 1 + i, j:ny - 1 + j, k:nz - 1 + k]
                                     for i in (0, 1) for j in (0, 1) for k in (0, 1)])
     cells = (nx - 1, ny - 1, nz - 1)
-    near = np.argwhere(corner_min < reach_m)  # (M, 3) lower corners
+    corner_max = np.maximum.reduce([d[i:nx - 1 + i, j:ny - 1 + j, k:nz - 1 + k]
+                                    for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    # deeper inside than reach_m, a point's row is violated by more than the reach whatever the margin
+    near = np.argwhere((corner_min < reach_m) & (corner_max > -reach_m))  # (M, 3) lower corners
     ticks = (np.arange(_LATTICE) + 0.5) / _LATTICE
     lattice = np.array([(a, b, c) for a in ticks for b in ticks for c in ticks])
+    corner = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    # a lattice point lies on the side of any corner farther from the surface than from the point
+    # (the ball around that corner holds no surface): its winding number is not needed
+    to_corner = grid.resolution * np.linalg.norm(lattice[:, None] - corner[None], axis=2)  # (L, 8)
     excess = np.zeros(len(near))
     for start in range(0, len(near), max(1, chunk // len(lattice))):
         block = near[start:start + max(1, chunk // len(lattice))]
         pts = (grid.origin + grid.resolution * (block[:, None, :] + lattice[None])).reshape(-1, 3)
-        exact, _, _ = signed_distance(mesh, pts)
+        phi_c = d[tuple((block[:, None, :] + corner[None]).transpose(2, 0, 1))]  # (B, 8)
+        clearance = np.abs(phi_c)[:, None, :] - to_corner[None]  # (B, L, 8)
+        best = np.argmax(clearance, axis=2)
+        known = np.take_along_axis(clearance, best[..., None], axis=2)[..., 0] > 0.0
+        side = np.where(known, np.sign(np.take_along_axis(phi_c[:, None, :], best[..., None], axis=2)[..., 0]), 0.0)
+        exact, _, _ = signed_distance(mesh, pts, side.ravel())
         interp, _, _ = grid.interpolate(pts)
         excess[start:start + len(block)] = np.maximum(0.0, (interp[:, 0] - exact).reshape(len(block), -1).max(axis=1))
     values = np.zeros(cells)
@@ -82,7 +95,7 @@ def interpolation_margin(grid: VoxelGrid, mesh: TriMesh, reach_m: float, chunk: 
 
 def cached_margin(grid: VoxelGrid, mesh: TriMesh, reach_m: float, cache_dir: Path | None = None) -> ErrorMargin:
     """:func:`interpolation_margin`, cached by mesh content, grid geometry and reach."""
-    key = f"{mesh.content_hash}-{grid.resolution}-{tuple(grid.shape)}-{grid.origin.tolist()}-{reach_m}"
+    key = f"{mesh.content_hash}-{grid.resolution}-{tuple(grid.shape)}-{grid.origin.tolist()}-{reach_m}-both-sides"
     name = hashlib.sha256(key.encode()).hexdigest()
     path = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "margins" / f"{name}.npz"
     cells = tuple(s - 1 for s in grid.shape)

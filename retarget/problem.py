@@ -428,7 +428,8 @@ LINK_GRID_RESOLUTION_M = 0.005
 @lru_cache(maxsize=2)
 def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack:
     """The signed distance grids of the G1 links' visual meshes (link frames) out to
-    ``reach_m``, stacked in BODY_NAMES order (links without a mesh have none); each grid is
+    ``reach_m`` (exact there; beyond, a lower bound: ``build_sdf_grid``'s ``far_m``), stacked in
+    BODY_NAMES order (links without a mesh have none); each grid is
     cached on disk like the object grids, one file per link mesh (its content hash in the name:
     scoring on Unitree's original meshes, ``otr_gym.true_surface``, must not evict the shipped
     meshes' grids, and the other way round)."""
@@ -436,16 +437,18 @@ def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack
 
     meshes = visual_meshes()
     root = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "robot_links"
+    # read only closer than reach_m: nodes whose every cell lies beyond it are bounded, not measured
+    far_m = reach_m + np.sqrt(3.0) * LINK_GRID_RESOLUTION_M
     grids = []
     for name in robot.BODY_NAMES:
         if name not in meshes:
             grids.append(None)
             continue
         mesh = as_trimesh(meshes[name].vertices, meshes[name].faces, f"G1 link {name}")
-        key = f"{mesh.content_hash}-{LINK_GRID_RESOLUTION_M}-{reach_m}"
+        key = f"{mesh.content_hash}-{LINK_GRID_RESOLUTION_M}-{reach_m}-bounded-beyond-{far_m}"
 
         def build(mesh=mesh) -> dict[str, np.ndarray]:
-            g = build_sdf_grid(mesh, LINK_GRID_RESOLUTION_M, reach_m)
+            g = build_sdf_grid(mesh, LINK_GRID_RESOLUTION_M, reach_m, far_m)
             return {"origin": g.origin, "shape": np.array(g.shape), "values": g.values}
 
         def check(a: dict[str, np.ndarray]) -> None:

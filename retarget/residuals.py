@@ -165,8 +165,12 @@ def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin
     """
     k = len(a_w)
     out = np.empty((k, 12))
-    _twist_factors(np.asarray(a_w, np.float64), np.asarray(x_w, np.float64), np.broadcast_to(origin_a, (k, 3)),
-                   np.broadcast_to(np.zeros(3) if origin_b is None else origin_b, (k, 3)), origin_b is not None, out)
+
+    def rows(v) -> np.ndarray:  # one array type for every call: each new type is another compilation (~0.5 s)
+        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (k, 3)))
+
+    _twist_factors(rows(a_w), rows(x_w), rows(origin_a), rows(np.zeros(3) if origin_b is None else origin_b),
+                   origin_b is not None, out)
     return out
 
 
