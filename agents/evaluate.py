@@ -8,7 +8,9 @@ Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
 - the policy's deterministic mean action;
 - success: the clip reached its last frame without a tracking termination;
 - MPJPE: root-relative over the 14 tracked bodies, every step an env is alive, including the
-  step it terminates on; per clip and overall (frame-weighted), in mm;
+  step it terminates on; per clip and overall (frame-weighted), in mm; beside it, as a
+  diagnostic, the same with the reference turned by the anchors' yaw difference
+  (``mpjpe_heading_aligned_mm``: posture without heading drift);
 - box task (``agents.metrics.ObjectEpisodeMetrics``): object position error (world, cm) mean
   and 95th percentile over the same frames, orientation error (deg), the error at the clip's
   last frame of successful episodes, and per support (ground, table) how often the object
@@ -44,7 +46,7 @@ from agents.library import clip_labels, load_library
 from agents.metrics import EpisodeAccumulator, ObjectEpisodeMetrics, summarize
 from agents.policy import TrainedPolicy, load_policy
 from agents.vecenv import make_vec_env
-from envs.mdp.metrics import mpjpe_root_relative
+from envs.mdp.metrics import mpjpe_root_relative, mpjpe_root_relative_heading_aligned
 from envs.task import NON_FINITE
 from otr_gym.reference import InvalidReferenceError
 
@@ -79,7 +81,9 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
         actions = policy.act(TensorDict(dict(obs), batch_size=[n], device=vec.device))
         obs, _, terminated, truncated, info = vec.step(actions)
         alive = ~acc.finished
-        acc.add_frame(mpjpe_root_relative(vec.tracking_state), ~info["terminations"][NON_FINITE])
+        state = vec.tracking_state
+        acc.add_frame(mpjpe_root_relative(state), ~info["terminations"][NON_FINITE],
+                      mpjpe_root_relative_heading_aligned(state))
         if objects is not None:
             objects.add_frame(vec.tracking_state, alive)
             objects.end_step(vec.tracking_state, alive & truncated & ~terminated)
@@ -114,7 +118,7 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         result = {"checkpoint": str(ckpt.path), "iteration": ckpt.iteration, **run_episodes(vec, policy, seed)}
         results.append(result)
         line = (f"iteration {ckpt.iteration:>6}: success {100 * result['success_rate']:5.1f} %  "
-                f"MPJPE {result['mpjpe_mm']:7.1f} mm")
+                f"MPJPE {result['mpjpe_mm']:7.1f} mm (heading-aligned {result['mpjpe_heading_aligned_mm']:5.1f})")
         if result.get("object_pos_error_cm") is not None:
             line += (f"  object {result['object_pos_error_cm']:5.1f} cm (p95 {result['object_pos_error_p95_cm']:5.1f}), "
                      f"{result['object_ori_error_deg']:5.1f} deg")
@@ -128,6 +132,8 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
                       "skipped": [{"clip": c.path, "error": c.error} for c in library.skipped]},
         "protocol": {"randomize": randomize, "num_envs": num_envs, "seed": seed, "device": str(torch_device),
                      "start_frame": 0, "action": "deterministic mean", "mpjpe": "root-relative, 14 bodies, mm",
+                     "mpjpe_heading_aligned": "diagnostic: the same after turning the reference by the anchors' "
+                                              "yaw difference (heading drift not charged)",
                      "objects": "position error world cm (mean over moving objects), orientation deg; "
                                 "support contact: force > 1 N inside the object-support windows"},
         "final": results[-1],

@@ -4,6 +4,9 @@ The per-frame metric is the env's ``envs.mdp.metrics.mpjpe_root_relative`` (pape
 (and for the box task its object errors, ``ObjectEpisodeMetrics``):
 MPJPE = mean_b ‖(p_b − p_root) − (p̂_b − p̂_root)‖ over the 14 tracked bodies, root = pelvis,
 world frame without rotation alignment (heading drift is charged, as in the paper).
+Beside it, as a diagnostic only, ``mpjpe_heading_aligned_mm``: the same with the reference turned
+by the anchors' yaw difference (``mpjpe_root_relative_heading_aligned``), i.e. posture without
+heading drift; the gap between the two is what heading drift costs.
 """
 
 from __future__ import annotations
@@ -26,21 +29,27 @@ class EpisodeAccumulator:
     num_envs: int
     device: torch.device | str = "cpu"
     mpjpe_sum_m: torch.Tensor = field(init=False)
+    aligned_sum_m: torch.Tensor = field(init=False)
     frames: torch.Tensor = field(init=False)
     terminated: torch.Tensor = field(init=False)
     finished: torch.Tensor = field(init=False)
 
     def __post_init__(self) -> None:
         self.mpjpe_sum_m = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
+        self.aligned_sum_m = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
         self.frames = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
         self.terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         self.finished = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
 
-    def add_frame(self, mpjpe_m: torch.Tensor, valid: torch.Tensor | None = None) -> None:
-        """MPJPE (N,) of the current frame; envs whose episode already ended, and frames of
-        ``valid`` False (a world whose physics diverged), are ignored."""
+    def add_frame(self, mpjpe_m: torch.Tensor, valid: torch.Tensor | None = None,
+                  heading_aligned_m: torch.Tensor | None = None) -> None:
+        """MPJPE (N,) of the current frame (and its heading-aligned diagnostic, if given); envs
+        whose episode already ended, and frames of ``valid`` False (a world whose physics
+        diverged), are ignored."""
         alive = ~self.finished if valid is None else ~self.finished & valid
         self.mpjpe_sum_m += torch.where(alive, mpjpe_m.to(torch.float64), 0.0)
+        if heading_aligned_m is not None:
+            self.aligned_sum_m += torch.where(alive, heading_aligned_m.to(torch.float64), 0.0)
         self.frames += alive.long()
 
     def end_step(self, terminated: torch.Tensor, truncated: torch.Tensor) -> None:
@@ -54,11 +63,13 @@ class EpisodeAccumulator:
         return bool(self.finished.all())
 
     def per_env(self) -> dict[str, np.ndarray]:
-        """success (clip completed without termination), mean MPJPE (mm), frames evaluated."""
+        """success (clip completed without termination), mean MPJPE (mm) and its heading-aligned
+        diagnostic (mm; 0 if never given), frames evaluated."""
         frames = self.frames.cpu().numpy()
         mpjpe = self.mpjpe_sum_m.cpu().numpy() / np.maximum(frames, 1) * M_TO_MM
+        aligned = self.aligned_sum_m.cpu().numpy() / np.maximum(frames, 1) * M_TO_MM
         success = (self.finished & ~self.terminated).cpu().numpy()
-        return {"success": success, "mpjpe_mm": mpjpe, "frames": frames}
+        return {"success": success, "mpjpe_mm": mpjpe, "mpjpe_heading_aligned_mm": aligned, "frames": frames}
 
 
 def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: list[str],
@@ -68,6 +79,12 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
     Overall MPJPE is frame-weighted (every evaluated frame counts once), so a policy that falls
     early is not rewarded with a small average over a few frames *and* it shows in success.
     """
+    def weighted(key: str, sel) -> dict:  # frame-weighted mean of a per-env figure, if present
+        if key not in per_env:
+            return {}
+        frames = per_env["frames"][sel]
+        return {key: float((per_env[key][sel] * frames).sum() / max(frames.sum(), 1))}
+
     clips = []
     for c, name in enumerate(clip_names):
         sel = clip_ids == c
@@ -79,6 +96,7 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
             "envs": int(sel.sum()),
             "success_rate": float(per_env["success"][sel].mean()),
             "mpjpe_mm": float((per_env["mpjpe_mm"][sel] * frames).sum() / max(frames.sum(), 1)),
+            **weighted("mpjpe_heading_aligned_mm", sel),
             "frames": int(frames.sum()),
             **(objects.summary(sel) if objects is not None else {}),
         })
@@ -86,6 +104,7 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
     return {
         "success_rate": float(per_env["success"].mean()),
         "mpjpe_mm": float((per_env["mpjpe_mm"] * frames).sum() / max(frames.sum(), 1)),
+        **weighted("mpjpe_heading_aligned_mm", slice(None)),
         "frames": int(frames.sum()),
         "envs": int(frames.size),
         **(objects.summary() if objects is not None else {}),

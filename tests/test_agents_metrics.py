@@ -43,3 +43,16 @@ def test_summary_is_frame_weighted_per_clip_and_overall():
     assert out["success_rate"] == pytest.approx(2 / 3)
     assert out["mpjpe_mm"] == pytest.approx((10 * 300 + 100 * 100 + 20 * 100) / 500)
     assert out["frames"] == 500 and out["envs"] == 3
+
+
+def test_heading_aligned_diagnostic_is_accumulated_and_frame_weighted_beside_mpjpe():
+    acc = EpisodeAccumulator(2)
+    acc.add_frame(torch.tensor([0.05, 0.02]), heading_aligned_m=torch.tensor([0.03, 0.02]))
+    acc.add_frame(torch.tensor([0.07, 0.02]), heading_aligned_m=torch.tensor([0.05, 0.02]))
+    out = acc.per_env()
+    np.testing.assert_allclose(out["mpjpe_mm"], [60.0, 20.0])
+    np.testing.assert_allclose(out["mpjpe_heading_aligned_mm"], [40.0, 20.0])
+    summary = summarize(out, clip_ids=np.array([0, 0]), clip_names=["jog"])
+    assert summary["mpjpe_heading_aligned_mm"] == pytest.approx(30.0)
+    assert summary["clips"][0]["mpjpe_heading_aligned_mm"] == pytest.approx(30.0)
+    assert summary["mpjpe_mm"] == pytest.approx(40.0)

@@ -14,7 +14,7 @@ import yaml
 from envs.config import DEFAULT_CONFIG, CommandCfg, TrackEnvCfg, load_track_config
 from envs.mdp import observations, rewards, terminations
 from envs.mdp.commands import MotionCommand
-from envs.mdp.metrics import mpjpe_root_relative
+from envs.mdp.metrics import mpjpe_root_relative, mpjpe_root_relative_heading_aligned
 from envs.mdp.motion import MotionLibrary
 from envs.mdp.state import TrackingState, aligned_targets
 from otr_gym import robot
@@ -308,3 +308,14 @@ def test_mpjpe_is_root_relative():
     bent = s.body_pos_w.clone()
     bent[:, TRACKED.index("left_wrist_yaw_link")] += torch.tensor([0.0, 0.0, 0.14])
     assert torch.allclose(mpjpe_root_relative(replace(s, body_pos_w=bent)), torch.full((3,), 0.01), atol=1e-6)
+
+
+def test_mpjpe_charges_heading_drift_and_its_heading_aligned_diagnostic_does_not():
+    turned = _state(offset_m=0.5, yaw_rad=0.3)
+    assert (mpjpe_root_relative(turned) > 0.03).all()
+    assert torch.allclose(mpjpe_root_relative_heading_aligned(turned), torch.zeros(3), atol=1e-5)
+    s = _state()
+    bent = s.body_pos_w.clone()
+    bent[:, TRACKED.index("left_wrist_yaw_link")] += torch.tensor([0.0, 0.0, 0.14])
+    posture = mpjpe_root_relative_heading_aligned(replace(s, body_pos_w=bent))
+    assert torch.allclose(posture, torch.full((3,), 0.01), atol=1e-6)

@@ -17,6 +17,16 @@ def mpjpe_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
     return torch.linalg.norm(robot_rel - ref_rel, dim=-1).mean(-1)
 
 
+def mpjpe_root_relative_heading_aligned(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
+    """(N,) the same MPJPE with the reference first turned by the anchors' yaw difference (the
+    reward's aligned targets): posture only, heading drift not charged. A diagnostic beside
+    ``mpjpe_root_relative`` (the paper's metric), which charges heading drift in full."""
+    r = s.body_names.index(root)
+    robot_rel = s.body_pos_w - s.body_pos_w[:, r : r + 1]
+    ref_rel = s.ref_body_pos_aligned_w - s.ref_body_pos_aligned_w[:, r : r + 1]
+    return torch.linalg.norm(robot_rel - ref_rel, dim=-1).mean(-1)
+
+
 def object_position_error_m(s: TrackingState) -> torch.Tensor:
     """(N, M) distance (m, world) of each moving object from its reference position."""
     return torch.linalg.norm(s.objects.ref_pos_w - s.objects.pos_w, dim=-1)
