@@ -30,6 +30,9 @@
 # evaluation envs, default 256 per clip), ITERS (scaling: iterations per GPU count, 150),
 # SCALING_MINUTES (scaling: also train this long on each GPU count and evaluate both; 0 = skip),
 # DATA (../shared/data, or shared/data in the checkout), RUNS_DIR (OUT_DIR/runs), PYTHON (python3).
+# BeyondMimic's default actor (with state estimation: + reference-anchor position and pelvis
+# linear velocity, 160 dims; not deployable by agents.deploy, which has no state estimator):
+#   SETS="$(cat benchmarks/state_estimation.sets)" NUM_ENVS=8192 MINUTES=5.5 benchmarks/train_library.sh train …
 #
 # OUT_DIR receives: train.log; from report: training_curves.png, clip_curves.png (success,
 # MPJPE, segment length, start probability per clip), training_summary.json, eval.json (frame 0,
@@ -112,13 +115,15 @@ summary = json.loads((out / "training_summary.json").read_text())
 rows = {c["clip"]: c for c in rand["clips"]}
 lines = [f"run {summary['run']}: {summary['iterations']} iterations, {summary['learning_minutes']:.1f} min of learning, "
          f"median {summary['median_fps']:,.0f} env steps/s", "",
-         "| clip | frames | success (frame 0) | MPJPE mm | randomised success | randomised MPJPE mm |",
-         "|---|---|---|---|---|---|"]
+         "| clip | frames | success (frame 0) | MPJPE mm | heading-aligned mm | randomised success | randomised MPJPE mm |",
+         "|---|---|---|---|---|---|---|"]
 for c in frame0["clips"]:
     r = rows.get(c["clip"], {})
     lines.append(f"| {c['clip']} | {c['frames']} | {100 * c['success_rate']:.1f} % | {c['mpjpe_mm']:.1f} | "
+                 f"{c.get('mpjpe_heading_aligned_mm', float('nan')):.1f} | "
                  f"{100 * r.get('success_rate', float('nan')):.1f} % | {r.get('mpjpe_mm', float('nan')):.1f} |")
 lines.append(f"| **all** | {frame0['frames']} | {100 * frame0['success_rate']:.1f} % | {frame0['mpjpe_mm']:.1f} | "
+             f"{frame0.get('mpjpe_heading_aligned_mm', float('nan')):.1f} | "
              f"{100 * rand['success_rate']:.1f} % | {rand['mpjpe_mm']:.1f} |")
 (out / "summary.md").write_text("\n".join(lines) + "\n")
 print("\n".join(lines))
