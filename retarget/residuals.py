@@ -177,21 +177,33 @@ def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin
 @numba.njit(cache=True)
 def _twist_factors(a, x, origin_a, origin_b, with_b, out):
     for k in range(a.shape[0]):
-        ra0, ra1, ra2 = x[k, 0] - origin_a[k, 0], x[k, 1] - origin_a[k, 1], x[k, 2] - origin_a[k, 2]
-        a0, a1, a2 = a[k, 0], a[k, 1], a[k, 2]
-        out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
-        out[k, 3] = ra1 * a2 - ra2 * a1
-        out[k, 4] = ra2 * a0 - ra0 * a2
-        out[k, 5] = ra0 * a1 - ra1 * a0
         if with_b:
-            rb0, rb1, rb2 = x[k, 0] - origin_b[k, 0], x[k, 1] - origin_b[k, 1], x[k, 2] - origin_b[k, 2]
-            out[k, 6], out[k, 7], out[k, 8] = -a0, -a1, -a2
-            out[k, 9] = -(rb1 * a2 - rb2 * a1)
-            out[k, 10] = -(rb2 * a0 - rb0 * a2)
-            out[k, 11] = -(rb0 * a1 - rb1 * a0)
+            _twist_row(a[k, 0], a[k, 1], a[k, 2], x[k, 0], x[k, 1], x[k, 2], origin_a[k, 0], origin_a[k, 1],
+                       origin_a[k, 2], origin_b[k, 0], origin_b[k, 1], origin_b[k, 2], out, k)
         else:
+            ra0, ra1, ra2 = x[k, 0] - origin_a[k, 0], x[k, 1] - origin_a[k, 1], x[k, 2] - origin_a[k, 2]
+            a0, a1, a2 = a[k, 0], a[k, 1], a[k, 2]
+            out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
+            out[k, 3] = ra1 * a2 - ra2 * a1
+            out[k, 4] = ra2 * a0 - ra0 * a2
+            out[k, 5] = ra0 * a1 - ra1 * a0
             for c in range(6, 12):
                 out[k, c] = 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _twist_row(a0, a1, a2, x0, x1, x2, oa0, oa1, oa2, ob0, ob1, ob2, out, k):
+    """Row k of ``twist_factors`` with both bodies moving: (a, (x − o_A) × a, −a, −(x − o_B) × a)."""
+    ra0, ra1, ra2 = x0 - oa0, x1 - oa1, x2 - oa2
+    out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
+    out[k, 3] = ra1 * a2 - ra2 * a1
+    out[k, 4] = ra2 * a0 - ra0 * a2
+    out[k, 5] = ra0 * a1 - ra1 * a0
+    rb0, rb1, rb2 = x0 - ob0, x1 - ob1, x2 - ob2
+    out[k, 6], out[k, 7], out[k, 8] = -a0, -a1, -a2
+    out[k, 9] = -(rb1 * a2 - rb2 * a1)
+    out[k, 10] = -(rb2 * a0 - rb0 * a2)
+    out[k, 11] = -(rb0 * a1 - rb1 * a0)
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,7 @@ from retarget.residuals import (
     FIXED,
     PairSet,
     Rows,
+    _twist_row,
     cross,
     interaction_rows,
     signed_distance_rows,
@@ -485,8 +486,7 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, li
     pinned), body B the link.
     """
     g_w = track.guards @ rot_c.T + pos_c
-    gap = np.linalg.norm(centre_w[links, None, :] - g_w[None], axis=2) - problem.link_radius[links, None]  # (l, G)
-    pair_link, guard = np.nonzero(gap < reach)
+    pair_link, guard = _spheres_reach(np.ascontiguousarray(centre_w[links]), problem.link_radius[links], g_w, reach)
     if len(guard) == 0:
         return Rows.empty()
     link = links[pair_link]
@@ -495,6 +495,26 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, li
     d, grad, inside = problem.link_grids.distance(local, link)
     keep = np.flatnonzero(inside & (d < reach))
     return _object_link_rows(problem, fr, track, pos_c, link[keep], x[keep], d[keep], grad[keep])
+
+
+def _spheres_reach(centre: np.ndarray, radius: np.ndarray, x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """(sphere, point) index pairs, sphere-major as ``np.nonzero``, of the points x (G, 3) whose
+    distance to a sphere (centre (l, 3), radius (l,)) is below ``reach``: ‖c − x‖ − r < reach."""
+    out_s, out_p = np.empty(len(centre) * len(x), np.intp), np.empty(len(centre) * len(x), np.intp)
+    k = _spheres_reach_into(centre, radius, np.ascontiguousarray(x, np.float64), float(reach), out_s, out_p)
+    return out_s[:k], out_p[:k]
+
+
+@numba.njit(cache=True)
+def _spheres_reach_into(centre, radius, x, reach, out_s, out_p):
+    k = 0
+    for s in range(centre.shape[0]):
+        for p in range(x.shape[0]):
+            d0, d1, d2 = centre[s, 0] - x[p, 0], centre[s, 1] - x[p, 1], centre[s, 2] - x[p, 2]
+            if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - radius[s] < reach:
+                out_s[k], out_p[k] = s, p
+                k += 1
+    return k
 
 
 def _object_link_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, pos_c: np.ndarray, link: np.ndarray,
@@ -568,27 +588,24 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
     first = clusters.offsets[clusters.body_offsets[ordered[:, 0]]]
     bound = int(np.sum(clusters.offsets[clusters.body_offsets[ordered[:, 0] + 1]] - first))
     link_a, link_b = np.empty(bound, np.intp), np.empty(bound, np.intp)
-    x_w, d, grad = np.empty((bound, 3)), np.empty(bound), np.empty((bound, 3))
+    value, phi = np.empty(bound), np.empty((bound, 12))
     k = _self_mesh_points(np.ascontiguousarray(ordered, np.intp), clusters.centre, clusters.radius, clusters.offsets,
                           clusters.body_offsets, vg.points, fr.rot, fr.pos, float(reach), grids.phi.ravel(),
                           grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset,
-                          link_a, link_b, x_w, d, grad)
-    link_a, link_b, x_w, d, grad = link_a[:k], link_b[:k], x_w[:k], d[:k], grad[:k]
-    a_w = np.einsum("kij,kj->ki", fr.rot[link_b], grad)
-    phi = twist_factors(a_w, x_w, fr.pos[link_a], fr.pos[link_b])
-    value = d - problem.surface_margin[link_a] - problem.surface_margin[link_b]
-    return Rows(value, np.ones(k), phi, link_a, link_b)
+                          problem.surface_margin, link_a, link_b, value, phi)
+    return Rows(value[:k], np.ones(k), phi[:k], link_a[:k], link_b[:k])
 
 
 @numba.njit(cache=True)
 def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, rot, pos, reach, phi, origin,
-                      inv_resolution, upper, strides, offset, out_a, out_b, out_x, out_d, out_g):
-    """The vertices of ``self_mesh_rows``: per ordered pair (a, b), each cluster of a whose centre
-    lies in b's grid with Φ − radius < reach, then each of its vertices in b's grid with
-    Φ < reach; writes the vertex's links, world position, Φ and ∂Φ/∂x (b's frame) and returns
-    the count. Point by point the arithmetic of ``posed_in_frames`` and ``GridStack.distance``
-    (the same bits), without their intermediate arrays, and a point outside b's grid is
-    dropped before any grid node is read."""
+                      inv_resolution, upper, strides, offset, surface_margin, out_a, out_b, out_value, out_phi):
+    """The rows of ``self_mesh_rows``: per ordered pair (a, b), each cluster of a whose centre
+    lies in b's grid with Φ − radius < reach, then each of its vertices x in b's grid with
+    Φ < reach, as the row Φ − m_a − m_b with the factors φ of ``twist_factors`` for the world
+    gradient R_b ∇Φ; returns the count. Point by point the arithmetic of ``posed_in_frames``,
+    ``GridStack.distance`` and ``twist_factors``, without their intermediate arrays, and a point
+    outside b's grid is dropped before any grid node is read. R_b ∇Φ is summed as numpy's einsum
+    sums it on our builds ((x + z) + y), so that references did not move by a bit."""
     k = 0
     for p in range(ordered.shape[0]):
         a, b = ordered[p, 0], ordered[p, 1]
@@ -616,11 +633,17 @@ def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, ro
                 iy, fy = _cell_inside(u1, up1)
                 iz, fz = _cell_inside(u2, up2)
                 val, g0, g1, g2 = _trilinear_phi(phi, offset[b] + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
-                if val < reach:
-                    out_a[k], out_b[k], out_d[k] = a, b, val
-                    out_x[k, 0], out_x[k, 1], out_x[k, 2] = w0, w1, w2
-                    out_g[k, 0], out_g[k, 1], out_g[k, 2] = g0 * inv, g1 * inv, g2 * inv
-                    k += 1
+                if not val < reach:
+                    continue
+                g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
+                a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+                a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+                a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+                out_a[k], out_b[k] = a, b
+                out_value[k] = val - surface_margin[a] - surface_margin[b]
+                _twist_row(a0, a1, a2, w0, w1, w2, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
+                           out_phi, k)
+                k += 1
     return k
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 
 from retarget.kinematics import NUM_LINKS
@@ -38,7 +39,17 @@ def near_channel(track: ChannelTrack, x_c: np.ndarray, reach: float) -> np.ndarr
     """Points (channel frame) inside the channel's bounds grown by ``reach``."""
     if track.is_ground:
         return x_c[:, 2] < reach
-    return np.all((x_c > track.lower - reach) & (x_c < track.upper + reach), axis=1)
+    out = np.empty(len(x_c), dtype=bool)
+    _inside_box(np.ascontiguousarray(x_c, np.float64), np.asarray(track.lower - reach, np.float64),
+                np.asarray(track.upper + reach, np.float64), out)
+    return out
+
+
+@numba.njit(cache=True)
+def _inside_box(x, lower, upper, out):
+    """out[i] ← lower < x[i] < upper on every axis (strict, as the array form)."""
+    for i in range(x.shape[0]):
+        out[i] = (lower[0] < x[i, 0] < upper[0]) and (lower[1] < x[i, 1] < upper[1]) and (lower[2] < x[i, 2] < upper[2])
 
 
 def _far_triples(n: int, band: float) -> Triples:
