@@ -27,6 +27,9 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from llvmlite import ir as llvm_ir
+from numba import types
+from numba.extending import intrinsic
 
 from retarget.geometry import Channel, ProximityQuery
 
@@ -110,6 +113,37 @@ class Triples:
 def to_channel_frame(x_w: np.ndarray, rot_c: np.ndarray, pos_c: np.ndarray) -> np.ndarray:
     """x_c = R_cᵀ (x − τ_c) for points (N, 3); row-vector form (x − τ) R."""
     return (x_w - pos_c) @ rot_c
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a·b + c rounded once (LLVM's fma), for numba kernels that must match BLAS bit for bit."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        d = llvm_ir.DoubleType()
+        return builder.call(builder.module.declare_intrinsic("llvm.fma", [d], llvm_ir.FunctionType(d, [d, d, d])), args)
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, inline="always")
+def _to_channel_point(x0, x1, x2, rot_c, pos_c):
+    """:func:`to_channel_frame` of one point in a numba kernel, bit for bit: numpy's (k, 3) @ (3, 3)
+    goes to OpenBLAS, whose kernel sums each entry as one FMA chain (checked for 1 to 5000 rows)."""
+    d0, d1, d2 = x0 - pos_c[0], x1 - pos_c[1], x2 - pos_c[2]
+    return (_fma(d2, rot_c[2, 0], _fma(d1, rot_c[1, 0], d0 * rot_c[0, 0])),
+            _fma(d2, rot_c[2, 1], _fma(d1, rot_c[1, 1], d0 * rot_c[0, 1])),
+            _fma(d2, rot_c[2, 2], _fma(d1, rot_c[1, 2], d0 * rot_c[0, 2])))
+
+
+@numba.njit(cache=True, inline="always")
+def _to_world_direction(g0, g1, g2, rot_c):
+    """g @ R_cᵀ (a channel-frame gradient turned to the world) of one row, as numpy computes it
+    (see :func:`_to_channel_point`)."""
+    return (_fma(g2, rot_c[0, 2], _fma(g1, rot_c[0, 1], g0 * rot_c[0, 0])),
+            _fma(g2, rot_c[1, 2], _fma(g1, rot_c[1, 1], g0 * rot_c[1, 0])),
+            _fma(g2, rot_c[2, 2], _fma(g1, rot_c[2, 1], g0 * rot_c[2, 0])))
 
 
 def query_triples(channel: Channel, x_w: np.ndarray, rot_c: np.ndarray, pos_c: np.ndarray) -> Triples:

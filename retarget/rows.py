@@ -21,15 +21,17 @@ import numba
 import numpy as np
 
 from otr_gym import robot
-from retarget.geometry import ProximityQuery, _cell_inside, _trilinear_phi
+from retarget.geometry import ProximityQuery, SDFChannel, _cell_inside, _trilinear_phi
 from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS, LinkFrames
-from retarget.probes import _pose_in_frame, posed_in_frames, segment_argmin
+from retarget.probes import ProbeSet, _pose_in_frame, posed_in_frames, segment_argmin
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
     FIXED,
     PairSet,
     Rows,
+    _to_channel_point,
+    _to_world_direction,
     _twist_row,
     cross,
     interaction_rows,
@@ -212,16 +214,103 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
     gi = _guards_within(guards.offsets, np.flatnonzero(near_links & (link_min - reach < margin)), anchor, anchor_d,
                         probe_d, margin)
     if len(gi):
-        gb = guards.body[gi]
-        g_w = guards.posed_index(gi, fr.rot, fr.pos)
+        con.add(_guard_rows(problem, fr, track, rot_c, pos_c, guards, gi, check), c)
+    return pairs, link_min
+
+
+def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray,
+                guards: ProbeSet, index: np.ndarray, check: float) -> Rows:
+    """Non-penetration rows (``_distance_block``, clearance ``Problem.surface_margin``) of the
+    robot guard points ``index`` closer than ``check`` to the channel: one numba pass that poses
+    each point, reads the channel's distance and writes the row, for the ground and for grid
+    channels; the same bits as the array form (kept for other channels)."""
+    channel = track.channel
+    if not (track.is_ground or isinstance(channel, SDFChannel)):
+        gb = guards.body[index]
+        g_w = guards.posed_index(index, fr.rot, fr.pos)
         g_c = to_channel_frame(g_w, rot_c, pos_c)
-        d, grad, in_band = track.channel.distance(g_c)
+        d, grad, in_band = channel.distance(g_c)
         ib = np.flatnonzero(in_band & (d < check))
         body = gb[ib]
-        con.add(_distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0), body,
-                                np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
-                                np.take(problem.surface_margin, body)), c)
-    return pairs, link_min
+        return _distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0), body,
+                               np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
+                               np.take(problem.surface_margin, body))
+    n = len(index)
+    value, phi, body, x_w, grad_c = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
+    if track.is_ground:
+        grid, band = None, float(channel.band_m)
+        phi_nodes, origin, inv, upper, strides = np.zeros(1), np.zeros(3), 0.0, np.zeros(3), np.zeros(3, np.intp)
+    else:
+        grid, band = channel.grid, float(channel.band_m)
+        phi_nodes, origin, inv, upper, strides = grid._phi, grid.origin, 1.0 / grid.resolution, grid._upper, grid._strides
+    margin = track.margin
+    m_origin, m_res, m_cells, m_values = ((margin.origin, float(margin.resolution), np.array(margin.cells, np.intp),
+                                           margin.values) if margin is not None
+                                          else (np.zeros(3), 1.0, np.zeros(3, np.intp), np.zeros(1)))
+    moving = track.body != FIXED
+    k = _guard_rows_into(guards.points, guards.body, np.asarray(index, np.intp), fr.rot, fr.pos,
+                         np.ascontiguousarray(rot_c, np.float64), np.ascontiguousarray(pos_c, np.float64),
+                         grid is None, phi_nodes, origin, inv, upper, strides, band, float(check), margin is not None,
+                         m_origin, m_res, m_cells, m_values, problem.surface_margin, moving, value, phi, body, x_w, grad_c)
+    if k == 1:  # numpy turns a single row with another BLAS kernel (matrix-vector): as it does
+        phi[:1] = twist_factors(grad_c[:1] @ rot_c.T, x_w[:1], fr.pos[body[:1]], pos_c if moving else None)
+    return Rows(value[:k], np.ones(k), phi[:k], body[:k], np.full(k, track.body, dtype=np.intp))
+
+
+@numba.njit(cache=True)
+def _guard_rows_into(points, point_body, index, rot, pos, rot_c, pos_c, ground, phi_nodes, origin, inv, upper, strides,
+                     band, check, with_margin, m_origin, m_res, m_cells, m_values, surface_margin, moving,
+                     out_value, out_phi, out_body, out_x, out_grad):
+    """Rows of ``_guard_rows`` (returns their count): per point, the arithmetic of
+    ``ProbeSet.posed_index``, ``to_channel_frame``, ``SDFChannel.distance`` (or the ground's z),
+    ``ErrorMargin.at``, ``signed_distance_rows``."""
+    k = 0
+    for m in range(index.shape[0]):
+        p = index[m]
+        b = point_body[p]
+        w0 = rot[b, 0, 0] * points[p, 0] + rot[b, 0, 1] * points[p, 1] + rot[b, 0, 2] * points[p, 2] + pos[b, 0]
+        w1 = rot[b, 1, 0] * points[p, 0] + rot[b, 1, 1] * points[p, 1] + rot[b, 1, 2] * points[p, 2] + pos[b, 1]
+        w2 = rot[b, 2, 0] * points[p, 0] + rot[b, 2, 1] * points[p, 1] + rot[b, 2, 2] * points[p, 2] + pos[b, 2]
+        x0, x1, x2 = _to_channel_point(w0, w1, w2, rot_c, pos_c)
+        if ground:
+            d, g0, g1, g2 = x2, 0.0, 0.0, 1.0
+            if not (d < band and d < check):
+                continue
+        else:
+            u0, u1, u2 = (x0 - origin[0]) * inv, (x1 - origin[1]) * inv, (x2 - origin[2]) * inv
+            if not (0.0 <= u0 <= upper[0] and 0.0 <= u1 <= upper[1] and 0.0 <= u2 <= upper[2]):
+                continue
+            ix, fx = _cell_inside(u0, upper[0])
+            iy, fy = _cell_inside(u1, upper[1])
+            iz, fz = _cell_inside(u2, upper[2])
+            d, g0, g1, g2 = _trilinear_phi(phi_nodes, ix * strides[0] + iy * strides[1] + iz * strides[2], strides[0],
+                                           strides[1], fx, fy, fz)
+            if not (d < band and d < check):
+                continue
+            g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
+        value = d
+        if with_margin:
+            c0 = int(np.floor((x0 - m_origin[0]) / m_res))
+            c1 = int(np.floor((x1 - m_origin[1]) / m_res))
+            c2 = int(np.floor((x2 - m_origin[2]) / m_res))
+            cy, cz = m_cells[1], m_cells[2]
+            if 0 <= c0 < m_cells[0] and 0 <= c1 < cy and 0 <= c2 < cz:
+                value = d - m_values[c0 * (cy * cz) + c1 * cz + c2]
+            else:
+                value = d - 0.0
+        out_value[k] = value - surface_margin[b]
+        out_body[k] = b
+        out_x[k, 0], out_x[k, 1], out_x[k, 2] = w0, w1, w2
+        out_grad[k, 0], out_grad[k, 1], out_grad[k, 2] = g0, g1, g2
+        a0, a1, a2 = _to_world_direction(g0, g1, g2, rot_c)
+        if moving:
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], pos_c[0], pos_c[1], pos_c[2], out_phi, k)
+        else:
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], 0.0, 0.0, 0.0, out_phi, k)
+            for j in range(6, 12):
+                out_phi[k, j] = 0.0
+        k += 1
+    return k
 
 
 def _guards_within(offsets: np.ndarray, links: np.ndarray, anchor: np.ndarray, anchor_d: np.ndarray,
