@@ -200,8 +200,13 @@ def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin
     k = len(a_w)
     out = np.empty((k, 12))
 
-    def rows(v) -> np.ndarray:  # one array type for every call: each new type is another compilation (~0.5 s)
-        return np.ascontiguousarray(np.broadcast_to(np.asarray(v, np.float64), (k, 3)))
+    def rows(v) -> np.ndarray:
+        """One array type for every call (C-contiguous (·, 3) float64: each new type is another
+        compilation, ~0.5 s): (k, 3), or (1, 3) for one point shared by every row (no copy k times)."""
+        v = np.asarray(v, np.float64)
+        if v.ndim == 1 or v.strides[0] == 0:
+            return np.ascontiguousarray(v.reshape(-1, 3)[:1])
+        return np.ascontiguousarray(v)
 
     _twist_factors(rows(a_w), rows(x_w), rows(origin_a), rows(np.zeros(3) if origin_b is None else origin_b),
                    origin_b is not None, out)
@@ -210,12 +215,15 @@ def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin
 
 @numba.njit(cache=True)
 def _twist_factors(a, x, origin_a, origin_b, with_b, out):
+    """Rows of ``twist_factors``; an origin array of one row serves every row."""
+    shared_a, shared_b = origin_a.shape[0] == 1, origin_b.shape[0] == 1
     for k in range(a.shape[0]):
+        ia, ib = 0 if shared_a else k, 0 if shared_b else k
         if with_b:
-            _twist_row(a[k, 0], a[k, 1], a[k, 2], x[k, 0], x[k, 1], x[k, 2], origin_a[k, 0], origin_a[k, 1],
-                       origin_a[k, 2], origin_b[k, 0], origin_b[k, 1], origin_b[k, 2], out, k)
+            _twist_row(a[k, 0], a[k, 1], a[k, 2], x[k, 0], x[k, 1], x[k, 2], origin_a[ia, 0], origin_a[ia, 1],
+                       origin_a[ia, 2], origin_b[ib, 0], origin_b[ib, 1], origin_b[ib, 2], out, k)
         else:
-            ra0, ra1, ra2 = x[k, 0] - origin_a[k, 0], x[k, 1] - origin_a[k, 1], x[k, 2] - origin_a[k, 2]
+            ra0, ra1, ra2 = x[k, 0] - origin_a[ia, 0], x[k, 1] - origin_a[ia, 1], x[k, 2] - origin_a[ia, 2]
             a0, a1, a2 = a[k, 0], a[k, 1], a[k, 2]
             out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
             out[k, 3] = ra1 * a2 - ra2 * a1

@@ -113,24 +113,104 @@ def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad
     close = np.flatnonzero(rows.value < margin)
     if len(close) == 0:
         return close
-    a = rows.phi[close, :3]
-    key = (rows.body_a[close] * 64 + channel[close]) * 32 + np.argmax(a @ _BINS.T, axis=1)
+    key = _group_keys(rows.phi, rows.body_a, channel, close)
     order = np.argsort(key, kind="stable")
     starts = np.flatnonzero(np.concatenate([[True], np.diff(key[order]) != 0]))
-    counts = np.diff(np.concatenate([starts, [len(close)]]))
-    mean_a = np.add.reduceat(a[order], starts, axis=0)
-    mean_a /= np.maximum(np.linalg.norm(mean_a, axis=1, keepdims=True), 1e-12)
-    t1 = cross(mean_a, np.eye(3)[np.argmin(np.abs(mean_a), axis=1)])
-    t1 /= np.maximum(np.linalg.norm(t1, axis=1, keepdims=True), 1e-12)
-    t2 = cross(mean_a, t1)
-    tilts = (np.cos(_ANGLES)[None, :, None] * t1[:, None] + np.sin(_ANGLES)[None, :, None] * t2[:, None])  # (G, 8, 3)
-    moment = rows.phi[close[order], 3:6]
-    scores = rows.value[close[order], None] + tilt_rad * np.einsum("kj,kdj->kd", moment,
-                                                                   np.repeat(tilts, counts, axis=0))
-    scores = np.concatenate([rows.value[close[order], None], scores], axis=1)  # (k, 9)
-    best = np.minimum.reduceat(scores, starts, axis=0)
-    extreme = (scores <= np.repeat(best, counts, axis=0)).any(axis=1)
+    extreme = np.empty(len(close), dtype=bool)
+    _extreme_rows(rows.value, rows.phi, close[order], np.append(starts, len(close)), float(tilt_rad), _COS, _SIN,
+                  extreme)
     return np.sort(close[order[extreme]])
+
+
+_COS, _SIN = np.cos(_ANGLES), np.sin(_ANGLES)
+
+
+@numba.njit(cache=True)
+def _group_keys(phi, body, channel, close):
+    """(body · 64 + channel) · 32 + bin of each close row, the bin the argmax of a·(±e_x, ±e_y,
+    ±e_z) (first on ties, as ``np.argmax(a @ _BINS.T)``, whose entries are exactly ±a_j)."""
+    out = np.empty(close.shape[0], np.intp)
+    for m in range(close.shape[0]):
+        r = close[m]
+        best, top = 0, phi[r, 0]
+        for j, v in ((1, phi[r, 1]), (2, phi[r, 2]), (3, -phi[r, 0]), (4, -phi[r, 1]), (5, -phi[r, 2])):
+            if v > top:
+                best, top = j, v
+        out[m] = (body[r] * 64 + channel[r]) * 32 + best
+    return out
+
+
+@numba.njit(cache=True)
+def _pairwise_sum(x, rows, col, lo, n):
+    """Σ x[rows[lo:lo + n], col] in numpy's order (``pairwise_sum`` of its add loops: 8
+    accumulators up to 128 terms, halves beyond), so that sums match np.add.reduce bit for bit."""
+    if n < 8:
+        res = -0.0
+        for i in range(lo, lo + n):
+            res += x[rows[i], col]
+        return res
+    if n <= 128:
+        r = np.empty(8)
+        for j in range(8):
+            r[j] = x[rows[lo + j], col]
+        i = 8
+        while i < n - n % 8:
+            for j in range(8):
+                r[j] += x[rows[lo + i + j], col]
+            i += 8
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        while i < n:
+            res += x[rows[lo + i], col]
+            i += 1
+        return res
+    half = n // 2
+    half -= half % 8
+    return _pairwise_sum(x, rows, col, lo, half) + _pairwise_sum(x, rows, col, lo + half, n - half)
+
+
+@numba.njit(cache=True)
+def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
+    """For each group g (rows[bounds[g]:bounds[g + 1]]): its mean gradient direction ā, two
+    unit tangents, the 8 tilts ω (|ω| = ``tilt``) and the rows whose d + ω·φ[3:6], or d, is
+    the group's smallest; ``out`` marks them. The arithmetic of the array form, sums in its
+    order (reduceat's pairwise sums, the einsum's (x + z) + y)."""
+    for g in range(bounds.shape[0] - 1):
+        lo, hi = bounds[g], bounds[g + 1]
+        # np.add.reduceat: the first row, plus numpy's pairwise sum of the others
+        m0 = phi[rows[lo], 0] + _pairwise_sum(phi, rows, 0, lo + 1, hi - lo - 1) if hi - lo > 1 else phi[rows[lo], 0]
+        m1 = phi[rows[lo], 1] + _pairwise_sum(phi, rows, 1, lo + 1, hi - lo - 1) if hi - lo > 1 else phi[rows[lo], 1]
+        m2 = phi[rows[lo], 2] + _pairwise_sum(phi, rows, 2, lo + 1, hi - lo - 1) if hi - lo > 1 else phi[rows[lo], 2]
+        n = max(np.sqrt(m0 * m0 + m1 * m1 + m2 * m2), 1e-12)
+        m0, m1, m2 = m0 / n, m1 / n, m2 / n
+        # e = the axis of the smallest |ā_j| (first on ties); t1 = ā × e
+        b0, b1, b2 = abs(m0), abs(m1), abs(m2)
+        e = 0
+        if b1 < b0:
+            e = 1
+        if b2 < (b1 if e == 1 else b0):
+            e = 2
+        e0, e1, e2 = 1.0 if e == 0 else 0.0, 1.0 if e == 1 else 0.0, 1.0 if e == 2 else 0.0
+        t10, t11, t12 = m1 * e2 - m2 * e1, m2 * e0 - m0 * e2, m0 * e1 - m1 * e0
+        n = max(np.sqrt(t10 * t10 + t11 * t11 + t12 * t12), 1e-12)
+        t10, t11, t12 = t10 / n, t11 / n, t12 / n
+        t20, t21, t22 = m1 * t12 - m2 * t11, m2 * t10 - m0 * t12, m0 * t11 - m1 * t10
+        best = np.full(9, np.inf)
+        for i in range(lo, hi):
+            r = rows[i]
+            best[0] = min(best[0], value[r])
+            for d in range(8):
+                w0, w1, w2 = cos[d] * t10 + sin[d] * t20, cos[d] * t11 + sin[d] * t21, cos[d] * t12 + sin[d] * t22
+                score = value[r] + tilt * ((phi[r, 3] * w0 + phi[r, 5] * w2) + phi[r, 4] * w1)
+                best[d + 1] = min(best[d + 1], score)
+        for i in range(lo, hi):
+            r = rows[i]
+            hit = value[r] <= best[0]
+            for d in range(8):
+                if hit:
+                    break
+                w0, w1, w2 = cos[d] * t10 + sin[d] * t20, cos[d] * t11 + sin[d] * t21, cos[d] * t12 + sin[d] * t22
+                hit = value[r] + tilt * ((phi[r, 3] * w0 + phi[r, 5] * w2) + phi[r, 4] * w1) <= best[d + 1]
+            out[i] = hit
 
 
 def _distance_block(track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, x_w: np.ndarray, x_c: np.ndarray,
