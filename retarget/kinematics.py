@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba
 import numpy as np
 import pinocchio as pin
 
@@ -167,6 +168,13 @@ class SelfCollision:
         With ``within``, only pairs whose segments' bounding spheres come closer than that
         are measured (the others are provably farther).
         """
+        if within is not None:
+            n = len(self.pairs)
+            dist, point_a, point_b, normal = np.empty(n), np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3))
+            link_a, link_b = np.empty(n, np.intp), np.empty(n, np.intp)
+            k = _capsule_distances(self.link, self.p0, self.p1, self.radius, self.pairs, fr.rot, fr.pos, float(within),
+                                   dist, point_a, point_b, normal, link_a, link_b)
+            return CapsuleDistances(dist[:k], point_a[:k], point_b[:k], normal[:k], link_a[:k], link_b[:k])
         a0, a1 = _posed(self, fr, self.p0), _posed(self, fr, self.p1)
         i, j = self.pairs[:, 0], self.pairs[:, 1]
         if within is not None:
@@ -195,6 +203,62 @@ class CapsuleDistances:
 
 def _posed(sc: SelfCollision, fr: LinkFrames, p: np.ndarray) -> np.ndarray:
     return np.einsum("kij,kj->ki", fr.rot[sc.link], p) + fr.pos[sc.link]
+
+
+@numba.njit(cache=True, inline="always")
+def _dot3(x0, x1, x2, y0, y1, y2):
+    """x·y summed as numpy's einsum sums three terms on our builds: (x₀y₀ + x₂y₂) + x₁y₁."""
+    return (x0 * y0 + x2 * y2) + x1 * y1
+
+
+@numba.njit(cache=True)
+def _capsule_distances(link, p0, p1, radius, pairs, rot, pos, within, out_dist, out_a, out_b, out_n, out_la, out_lb):
+    """``SelfCollision.distances`` with ``within``, one pass (returns the pair count): the
+    arithmetic of ``_posed``, the bounding test and ``segment_closest_points``, in numpy's sums
+    (einsum's three-term order, norms summed in order), so that the bits are the array form's."""
+    n_caps = link.shape[0]
+    a0, a1 = np.empty((n_caps, 3)), np.empty((n_caps, 3))
+    centre, half = np.empty((n_caps, 3)), np.empty(n_caps)
+    for c in range(n_caps):
+        m = link[c]
+        for r in range(3):
+            a0[c, r] = _dot3(rot[m, r, 0], rot[m, r, 1], rot[m, r, 2], p0[c, 0], p0[c, 1], p0[c, 2]) + pos[m, r]
+            a1[c, r] = _dot3(rot[m, r, 0], rot[m, r, 1], rot[m, r, 2], p1[c, 0], p1[c, 1], p1[c, 2]) + pos[m, r]
+            centre[c, r] = 0.5 * (a0[c, r] + a1[c, r])
+        d0, d1, d2 = a1[c, 0] - a0[c, 0], a1[c, 1] - a0[c, 1], a1[c, 2] - a0[c, 2]
+        half[c] = 0.5 * np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    eps = 1e-12
+    k = 0
+    for q in range(pairs.shape[0]):
+        i, j = pairs[q, 0], pairs[q, 1]
+        e0, e1, e2 = centre[i, 0] - centre[j, 0], centre[i, 1] - centre[j, 1], centre[i, 2] - centre[j, 2]
+        if not np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) - half[i] - half[j] - radius[i] - radius[j] < within:
+            continue
+        u0, u1, u2 = a1[i, 0] - a0[i, 0], a1[i, 1] - a0[i, 1], a1[i, 2] - a0[i, 2]
+        v0, v1, v2 = a1[j, 0] - a0[j, 0], a1[j, 1] - a0[j, 1], a1[j, 2] - a0[j, 2]
+        w0, w1, w2 = a0[i, 0] - a0[j, 0], a0[i, 1] - a0[j, 1], a0[i, 2] - a0[j, 2]
+        a, e = _dot3(u0, u1, u2, u0, u1, u2), _dot3(v0, v1, v2, v0, v1, v2)
+        f, c = _dot3(v0, v1, v2, w0, w1, w2), _dot3(u0, u1, u2, w0, w1, w2)
+        b = _dot3(u0, u1, u2, v0, v1, v2)
+        denom = a * e - b * b
+        s = min(max((b * f - c * e) / denom, 0.0), 1.0) if denom > eps else 0.0
+        t = (b * s + f) / e if e > eps else 0.0
+        t_clamped = min(max(t, 0.0), 1.0)
+        if t != t_clamped:
+            s = min(max((b * t_clamped - c) / a, 0.0), 1.0) if a > eps else 0.0
+        ca0, ca1, ca2 = a0[i, 0] + s * u0, a0[i, 1] + s * u1, a0[i, 2] + s * u2
+        cb0, cb1, cb2 = a0[j, 0] + t_clamped * v0, a0[j, 1] + t_clamped * v1, a0[j, 2] + t_clamped * v2
+        g0, g1, g2 = ca0 - cb0, ca1 - cb1, ca2 - cb2
+        length = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        unit = max(length, 1e-12)
+        n0, n1, n2 = g0 / unit, g1 / unit, g2 / unit
+        out_dist[k] = length - radius[i] - radius[j]
+        out_a[k, 0], out_a[k, 1], out_a[k, 2] = ca0 - radius[i] * n0, ca1 - radius[i] * n1, ca2 - radius[i] * n2
+        out_b[k, 0], out_b[k, 1], out_b[k, 2] = cb0 + radius[j] * n0, cb1 + radius[j] * n1, cb2 + radius[j] * n2
+        out_n[k, 0], out_n[k, 1], out_n[k, 2] = n0, n1, n2
+        out_la[k], out_lb[k] = link[i], link[j]
+        k += 1
+    return k
 
 
 def segment_closest_points(p0, p1, q0, q1):
