@@ -34,6 +34,7 @@ from retarget.residuals import (
     _to_world_direction,
     _twist_row,
     cross,
+    far_field,
     interaction_rows,
     signed_distance_rows,
     to_channel_frame,
@@ -272,8 +273,13 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         probe_d[idx[sel]] = q.d
         active = np.flatnonzero(q.in_band | demo_active[sel])
         a = sel[active]
-        pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), np.take(x_c, a, axis=0),
-                            _take(q, active))
+        # Beyond the grid's band a pair active in the demonstration reads d = band with no
+        # gradient: the distance to its demonstrated witness pulls it in instead (``far_field``),
+        # for the contact-state rows too. Without it the G1's pelvis and right knee stayed 19–22 cm
+        # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
+        x_a = np.take(x_c, a, axis=0)
+        pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), x_a,
+                            far_field(_take(q, active), x_a, targets.robot[c].take(idx[a]), track.is_ground))
         # Against the ground the hull vertices (guards) imply every area probe: skip those.
         if not track.is_ground:
             ib = np.flatnonzero(q.in_band & (q.d < check))

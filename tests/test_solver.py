@@ -205,3 +205,30 @@ def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_clust
     assert len(at_hand) == len(within)
     np.testing.assert_allclose(np.sort(rows.value[at_hand] + problem.surface_margin[hand]), np.sort(deepest),
                                atol=1e-12)
+
+
+def test_a_hand_that_holds_in_the_demonstration_is_pulled_in_from_beyond_the_grid_band():
+    """A part in contact in the demonstration whose robot probes all lie beyond the object's
+    grid band (15 cm) reads d = band there, with no gradient; its contact-state row must still
+    pull it towards the demonstrated witness (the far field), or a smaller robot's knee or pelvis
+    stays wherever it started (OMOMO chair: 19–22 cm away for 35 frames)."""
+    from retarget.rows import _ConstraintRows, _contact_state_rows, _robot_channel, _select_contact_rows
+
+    problem = build_problem(resample_demonstration(clip("box_carry", 200, 203), 50.0))
+    state = new_state(problem)  # the robot at its cold start, the box where the person holds it
+    targets = frame_targets(problem, 0)
+    c = next(k for k, tr in enumerate(problem.channels) if not tr.channel.is_ground)
+    state.obj_pos[0] = state.obj_pos[0] + np.array([0.0, 0.0, 0.6])  # and lifted far above the hands
+    fr = problem.kin.frames(state.data, state.q)
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    pairs, _ = _robot_channel(problem, state, targets, fr, centre_w, c, _ConstraintRows([], []))
+    assert pairs is not None and not pairs.query.in_band.any()  # every pair is demonstrated, none in the band
+    selection = _select_contact_rows(problem, targets, [pairs])
+    rows = _contact_state_rows(problem, fr, [pairs], selection)[0]
+    names = np.array(robot.BODY_NAMES)[rows.body_a]
+    hands = np.char.startswith(names, "left_wrist") | np.char.startswith(names, "right_wrist")
+    # both hands held the box in these frames: a row on each (at the hand unit's closest probe)
+    assert {n.split("_")[0] for n in names[hands]} == {"left", "right"}
+    for k in np.flatnonzero(hands):
+        assert rows.value[k] > 0.3  # far: |x − ŵ| less the demonstrated gap
+        assert np.linalg.norm(rows.phi[k, :3]) > 0.99  # a unit pull, not the band's zero gradient
