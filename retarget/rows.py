@@ -505,7 +505,12 @@ def _contact_state_rows(problem: Problem, fr: LinkFrames, pairs: list[_RobotPair
         track = problem.channels[p.channel]
         rows = signed_distance_rows(p.query.d[k] - selection.target[mine], p.query.grad_d[k], p.x_w[k],
                                     np.take(fr.pos, link, axis=0), link, track.body, p.rot_c, p.pos_c)
-        out.append(Rows(rows.value, selection.weight[mine], rows.phi, rows.body_a, rows.body_b))
+        # a far-field pull (beyond the band) moves the robot's part in, never the object out to
+        # it: dragged by the pelvis the person leans on, the free chair drifted 5.6 cm off its path
+        far = ~p.query.in_band[k]
+        phi = rows.phi.copy()
+        phi[far, 6:] = 0.0
+        out.append(Rows(rows.value, selection.weight[mine], phi, rows.body_a, np.where(far, FIXED, rows.body_b)))
     return out
 
 

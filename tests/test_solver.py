@@ -232,3 +232,4 @@ def test_a_hand_that_holds_in_the_demonstration_is_pulled_in_from_beyond_the_gri
     for k in np.flatnonzero(hands):
         assert rows.value[k] > 0.3  # far: |x − ŵ| less the demonstrated gap
         assert np.linalg.norm(rows.phi[k, :3]) > 0.99  # a unit pull, not the band's zero gradient
+        assert rows.body_b[k] == FIXED and not rows.phi[k, 6:].any()  # the hand moves in, the box stays
