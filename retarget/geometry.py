@@ -263,21 +263,11 @@ def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, o
         sx, sy = strides[g, 0], strides[g, 1]
         r = offset[g] + ix * sx + iy * sy + iz * strides[g, 2]
         for k in range(values.shape[1]):
-            c000, c001 = values[r, k], values[r + 1, k]
-            c010, c011 = values[r + sy, k], values[r + sy + 1, k]
-            c100, c101 = values[r + sx, k], values[r + sx + 1, k]
-            c110, c111 = values[r + sx + sy, k], values[r + sx + sy + 1, k]
-            dz00, dz01, dz10, dz11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110
-            cz00, cz01 = c000 + fz * dz00, c010 + fz * dz01
-            cz10, cz11 = c100 + fz * dz10, c110 + fz * dz11
-            dy0, dy1 = cz01 - cz00, cz11 - cz10
-            cyz0, cyz1 = cz00 + fy * dy0, cz10 + fy * dy1
-            dyz0, dyz1 = dz00 + fy * (dz01 - dz00), dz10 + fy * (dz11 - dz10)
-            dx = cyz1 - cyz0
-            val[i, k] = cyz0 + fx * dx
-            jac[i, k, 0] = dx * scale
-            jac[i, k, 1] = (dy0 + fx * (dy1 - dy0)) * scale
-            jac[i, k, 2] = (dyz0 + fx * (dyz1 - dyz0)) * scale
+            v, gx, gy, gz = _trilinear_phi(values[:, k], r, sx, sy, fx, fy, fz)
+            val[i, k] = v
+            jac[i, k, 0] = gx * scale
+            jac[i, k, 1] = gy * scale
+            jac[i, k, 2] = gz * scale
 
 
 @numba.njit(cache=True)
@@ -285,14 +275,14 @@ def _cell_axis(x, origin, inv_resolution, upper):
     """Along one axis: the cell's lower node index, the position in the cell in [0, 1], and
     whether x lies within the grid (outside, the cell of the projection)."""
     u = (x - origin) * inv_resolution
-    c = min(max(np.floor(u), 0.0), upper - 1.0)
-    return int(c), min(max(u - c, 0.0), 1.0), u >= 0.0 and u <= upper
+    c, f = _cell_inside(u, upper)
+    return c, f, u >= 0.0 and u <= upper
 
 
 @numba.njit(cache=True, inline="always")
 def _cell_inside(u, upper):
-    """:func:`_cell_axis` for a grid coordinate u known to lie in [0, upper]: the cell's lower
-    node index and the position in the cell (the same arithmetic)."""
+    """Along one axis, for a grid coordinate u: the cell's lower node index and the position in
+    the cell in [0, 1] (a u outside [0, upper] gets the cell of its projection)."""
     c = min(max(np.floor(u), 0.0), upper - 1.0)
     return int(c), min(max(u - c, 0.0), 1.0)
 

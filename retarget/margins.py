@@ -63,13 +63,10 @@ def interpolation_margin(grid: VoxelGrid, mesh: TriMesh, reach_m: float, chunk: 
     inside get none: 36 % of the OMOMO large box's, whose margin changed no reference)."""
     nx, ny, nz = grid.shape
     d = grid.values[:, 0].reshape(nx, ny, nz)
-    corner_min = np.minimum.reduce([d[i:nx - 1 + i, j:ny - 1 + j, k:nz - 1 + k]
-                                    for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    corners = [d[i:nx - 1 + i, j:ny - 1 + j, k:nz - 1 + k] for i in (0, 1) for j in (0, 1) for k in (0, 1)]
     cells = (nx - 1, ny - 1, nz - 1)
-    corner_max = np.maximum.reduce([d[i:nx - 1 + i, j:ny - 1 + j, k:nz - 1 + k]
-                                    for i in (0, 1) for j in (0, 1) for k in (0, 1)])
     # deeper inside than reach_m, a point's row is violated by more than the reach whatever the margin
-    near = np.argwhere((corner_min < reach_m) & (corner_max > -reach_m))  # (M, 3) lower corners
+    near = np.argwhere((np.minimum.reduce(corners) < reach_m) & (np.maximum.reduce(corners) > -reach_m))
     ticks = (np.arange(_LATTICE) + 0.5) / _LATTICE
     lattice = np.array([(a, b, c) for a in ticks for b in ticks for c in ticks])
     corner = np.array([(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1)])

@@ -223,12 +223,8 @@ def _twist_factors(a, x, origin_a, origin_b, with_b, out):
             _twist_row(a[k, 0], a[k, 1], a[k, 2], x[k, 0], x[k, 1], x[k, 2], origin_a[ia, 0], origin_a[ia, 1],
                        origin_a[ia, 2], origin_b[ib, 0], origin_b[ib, 1], origin_b[ib, 2], out, k)
         else:
-            ra0, ra1, ra2 = x[k, 0] - origin_a[ia, 0], x[k, 1] - origin_a[ia, 1], x[k, 2] - origin_a[ia, 2]
-            a0, a1, a2 = a[k, 0], a[k, 1], a[k, 2]
-            out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
-            out[k, 3] = ra1 * a2 - ra2 * a1
-            out[k, 4] = ra2 * a0 - ra0 * a2
-            out[k, 5] = ra0 * a1 - ra1 * a0
+            _twist_half(a[k, 0], a[k, 1], a[k, 2], x[k, 0] - origin_a[ia, 0], x[k, 1] - origin_a[ia, 1],
+                        x[k, 2] - origin_a[ia, 2], out, k, 0)
             for c in range(6, 12):
                 out[k, c] = 0.0
 
@@ -236,16 +232,17 @@ def _twist_factors(a, x, origin_a, origin_b, with_b, out):
 @numba.njit(cache=True, inline="always")
 def _twist_row(a0, a1, a2, x0, x1, x2, oa0, oa1, oa2, ob0, ob1, ob2, out, k):
     """Row k of ``twist_factors`` with both bodies moving: (a, (x − o_A) × a, −a, −(x − o_B) × a)."""
-    ra0, ra1, ra2 = x0 - oa0, x1 - oa1, x2 - oa2
-    out[k, 0], out[k, 1], out[k, 2] = a0, a1, a2
-    out[k, 3] = ra1 * a2 - ra2 * a1
-    out[k, 4] = ra2 * a0 - ra0 * a2
-    out[k, 5] = ra0 * a1 - ra1 * a0
-    rb0, rb1, rb2 = x0 - ob0, x1 - ob1, x2 - ob2
-    out[k, 6], out[k, 7], out[k, 8] = -a0, -a1, -a2
-    out[k, 9] = -(rb1 * a2 - rb2 * a1)
-    out[k, 10] = -(rb2 * a0 - rb0 * a2)
-    out[k, 11] = -(rb0 * a1 - rb1 * a0)
+    _twist_half(a0, a1, a2, x0 - oa0, x1 - oa1, x2 - oa2, out, k, 0)
+    _twist_half(-a0, -a1, -a2, x0 - ob0, x1 - ob1, x2 - ob2, out, k, 6)
+
+
+@numba.njit(cache=True, inline="always")
+def _twist_half(a0, a1, a2, r0, r1, r2, out, k, col):
+    """out[k, col:col + 6] = (a, r × a)."""
+    out[k, col], out[k, col + 1], out[k, col + 2] = a0, a1, a2
+    out[k, col + 3] = r1 * a2 - r2 * a1
+    out[k, col + 4] = r2 * a0 - r0 * a2
+    out[k, col + 5] = r0 * a1 - r1 * a0
 
 
 @dataclass(frozen=True)
@@ -254,8 +251,9 @@ class PairSet:
 
     Arrays are restricted to the active pairs. ``x_w`` world probe positions, ``origin_a`` the
     origin of the body carrying each probe, ``body_a`` that body; the channel is body ``body_b``
-    at pose (``rot_c``, ``pos_c``). ``query`` is the channel's answer at ``x_c``; ``desired`` the
-    demonstrated triples of the same pairs; ``norm`` = f_ℓ/N_ℓ per pair.
+    at pose (``rot_c``, ``pos_c``). ``query`` is the channel's answer at ``x_c``, with the far
+    field (:func:`far_field`) where a pair lies beyond the band; ``desired`` the demonstrated
+    triples of the same pairs; ``norm`` = f_ℓ/N_ℓ per pair.
     """
 
     x_w: np.ndarray  # (k, 3)
@@ -316,7 +314,7 @@ def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, flo
     if k == 0:
         return Rows.empty()
     lam_d, lam_x, lam_n = weights
-    q = far_field(pairs.query, pairs.x_c, pairs.desired, channel.is_ground)
+    q = pairs.query
     d_hat = pairs.desired.d
     b, db = beta_and_slope(d_hat, q.d, cfg.sigma_m, cfg.beta_max)
     bb = beta_bar(d_hat, cfg.sigma_m)

@@ -275,7 +275,7 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         a = sel[active]
         # Beyond the grid's band a pair active in the demonstration reads d = band with no
         # gradient: the distance to its demonstrated witness pulls it in instead (``far_field``),
-        # for the contact-state rows too. Without it the G1's pelvis and right knee stayed 19–22 cm
+        # for the interaction and the contact-state rows alike. Without it the G1's pelvis and right knee stayed 19–22 cm
         # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
         x_a = np.take(x_c, a, axis=0)
         pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), x_a,
@@ -536,7 +536,10 @@ def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i:
             continue
         q = track.channel.query(np.take(o_c, sel, axis=0), normals=False)
         active = np.flatnonzero(q.in_band | demo_active[sel])
-        pairs.append((c, track, rot_c, pos_c, sel[active], _take(q, active)))
+        a = sel[active]
+        a_c = np.take(o_c, a, axis=0)
+        pairs.append((c, track, rot_c, pos_c, a, a_c,
+                      far_field(_take(q, active), a_c, targets.objects[i][c].take(a), track.is_ground)))
         ib = np.flatnonzero(q.in_band & (q.d < check))
         pts = sel[ib]
         con.add(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
@@ -557,8 +560,8 @@ def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i:
     n_counted = int(active_any.sum())
     weight = problem.interaction.link_weight / max(n_counted if count is None else count, 1)
     cost, total = [], 0
-    for c, track, rot_c, pos_c, sel, q in pairs:
-        ps = PairSet(o_w[sel], to_channel_frame(o_w[sel], rot_c, pos_c),
+    for c, track, rot_c, pos_c, sel, sel_c, q in pairs:
+        ps = PairSet(o_w[sel], sel_c,
                      np.broadcast_to(state.obj_pos[i], (len(sel), 3)), np.full(len(sel), body), track.body,
                      rot_c, pos_c, q, targets.objects[i][c].take(sel), np.full(len(sel), weight))
         cost.append(interaction_rows(ps, track.channel, problem.interaction.object_weights, problem.interaction))
@@ -794,26 +797,14 @@ def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, ro
         up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
         sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
         for c in range(body_offsets[a], body_offsets[a + 1]):
-            _, _, _, x0, x1, x2 = _pose_in_frame(centre, c, a, b, rot, pos)
-            u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
-            if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
-                continue
-            ix, fx = _cell_inside(u0, up0)
-            iy, fy = _cell_inside(u1, up1)
-            iz, fz = _cell_inside(u2, up2)
-            val, _, _, _ = _trilinear_phi(phi, offset[b] + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
-            if not val - radius[c] < reach:
+            inside, val, _, _, _, _, _, _ = _phi_in_grid(centre, c, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
+                                                         up0, up1, up2, sx, sy, sz)
+            if not (inside and val - radius[c] < reach):
                 continue
             for v in range(offsets[c], offsets[c + 1]):
-                w0, w1, w2, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
-                u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
-                if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
-                    continue
-                ix, fx = _cell_inside(u0, up0)
-                iy, fy = _cell_inside(u1, up1)
-                iz, fz = _cell_inside(u2, up2)
-                val, g0, g1, g2 = _trilinear_phi(phi, offset[b] + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
-                if not val < reach:
+                inside, val, g0, g1, g2, w0, w1, w2 = _phi_in_grid(points, v, a, b, rot, pos, phi, offset[b], o0, o1,
+                                                                   o2, inv, up0, up1, up2, sx, sy, sz)
+                if not (inside and val < reach):
                     continue
                 g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
                 a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
@@ -825,6 +816,22 @@ def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, ro
                            out_phi, k)
                 k += 1
     return k
+
+
+@numba.njit(cache=True, inline="always")
+def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """Point v of body a posed into body b's grid (origin o, 1/resolution inv, upper bounds up,
+    strides s, first row row0): whether it lies inside, then Φ and its partials per cell width
+    (unread when outside) and its world position."""
+    w0, w1, w2, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+    if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
+        return False, 0.0, 0.0, 0.0, 0.0, w0, w1, w2
+    ix, fx = _cell_inside(u0, up0)
+    iy, fy = _cell_inside(u1, up1)
+    iz, fz = _cell_inside(u2, up2)
+    val, g0, g1, g2 = _trilinear_phi(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
+    return True, val, g0, g1, g2, w0, w1, w2
 
 
 #: The root link (pelvis): its origin is the floating base's.
