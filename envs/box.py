@@ -24,8 +24,10 @@ What the objects add (RL_SPEC §3 object variant, §4 object terms, §5, §6):
   of the object observations (named in ``observation_names`` like every term).
 
 Extra keyword argument: none; objects without an embedded mesh take theirs from the config
-(``objects.overrides.<name>.mesh``). A reference without objects, an object without a mesh
-and a mesh that cannot be decomposed raise ``InvalidReferenceError`` naming file and object.
+(``objects.overrides.<name>.mesh``), terrain as in OTR-G1-Track-v0 (``cfg.terrain``,
+``envs.terrain``). A reference without objects, an object without a mesh, a mesh that cannot
+be decomposed and a static object in a library whose terrain puts clips at several origins
+raise ``InvalidReferenceError`` naming file and object.
 """
 
 from __future__ import annotations
@@ -43,9 +45,11 @@ from envs.mdp.motion import MotionLibrary, ReferenceSource, prepared_references
 from envs.mdp.objects import ObjectLibrary, fit_boxes_to_grasps
 from envs.mdp.randomization import randomize_objects
 from envs.mdp.state import ObjectState, TrackingState
-from envs.objects import GROUND_GEOM, SceneObjects, object_qpos, object_qvel, scene_objects
+from envs.objects import GROUND_GEOM, SceneObjects, is_static, object_qpos, object_qvel, scene_objects
 from envs.task import TrackingTask, masked_mean
+from envs.terrain import SceneTerrain, contact_buffers, place_terrain, terrain_meshes
 from envs.tracking import TrackEnv, TrackVecEnv
+from otr_gym.reference import InvalidReferenceError
 from otr_gym.rotations import quat_apply, quat_mul
 
 _PER_WORLD_FIELDS = ("geom_friction", "body_ipos", "body_mass", "body_inertia")  # §6, robot and objects
@@ -65,7 +69,7 @@ class BoxTrackingTask(TrackingTask):
     """``TrackingTask`` with simulated objects (see the module docstring)."""
 
     def __init__(self, cfg: BoxEnvCfg, motion: MotionLibrary, objects: ObjectLibrary, scene: SceneObjects,
-                 backend: PhysicsBackend, seed: int = 0, autoreset: bool = True):
+                 backend: PhysicsBackend, seed: int = 0, autoreset: bool = True, terrain: SceneTerrain | None = None):
         self.objects, self.scene = objects, scene
         d = backend.device
         moving = [o.body for o in scene.moving]
@@ -80,7 +84,7 @@ class BoxTrackingTask(TrackingTask):
         self._object_mass = torch.tensor([o.mass_kg for o in scene.moving], device=d).expand(n, -1).clone()
         self._object_friction = torch.tensor([o.friction for o in scene.moving], device=d).expand(n, -1).clone()
         self._gravity_w = torch.as_tensor(backend.model.opt.gravity, dtype=torch.float32, device=d)
-        super().__init__(cfg, motion, backend, seed=seed, autoreset=autoreset)
+        super().__init__(cfg, motion, backend, seed=seed, autoreset=autoreset, terrain=terrain)
         if cfg.randomization.enabled:
             draws = randomize_objects(backend, moving, [o.mass_kg for o in scene.moving], cfg.objects.randomization,
                                       self.generator)
@@ -180,23 +184,31 @@ def make_box_task(reference: ReferenceSource, num_envs: int, backend: str, devic
     if evaluation:
         cfg = cfg.for_evaluation()
     refs = prepared_references(reference, cfg.command.tracked_bodies, cfg.command.fps, cfg.command.min_clip_frames)
+    refs, terrain = place_terrain(refs, cfg.terrain, terrain_meshes(cfg.terrain.meshes, reference))
+    if np.ptp(terrain.clip_origin_w, axis=0).any():
+        static = sorted({t.name for r in refs for t in r.objects if is_static(t, cfg.objects)})
+        if static:
+            raise InvalidReferenceError(
+                f"{refs[0].source}: static object(s) {static} in a library whose terrain clips lie at other origins "
+                f"(x = {', '.join(f'{x:g}' for x in np.unique(terrain.clip_origin_w[:, 0]))} m): a fixed body has one "
+                "pose, so train the terrain clips and the clips with static objects separately")
     scene = scene_objects(refs, cfg.objects)
     hand_pairs, support_pairs = contact_pairs(scene, cfg.objects.hand_bodies, cfg.objects.support_ground)
     pairs = hand_pairs + support_pairs
-    model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim)
+    model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim, terrain=terrain)
     if cfg.objects.grasp_fit:
         fitted = fit_boxes_to_grasps(refs, scene, model, cfg.objects)
         if fitted is not scene:
             scene = fitted
-            model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim)
+            model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim, terrain=terrain)
     motion = MotionLibrary.from_references(refs, cfg.command.tracked_bodies, cfg.command.fps)
     objects = ObjectLibrary.from_references(refs, scene, model, cfg.objects)
     physics = make_backend(backend, model, num_envs, device, cfg.sim.decimation, cfg.sim.contact_bodies,
-                           cfg.sim.nconmax, cfg.sim.njmax,
+                           *contact_buffers(cfg.sim, cfg.terrain, terrain),
                            per_world_fields=_PER_WORLD_FIELDS if cfg.randomization.enabled else (),
                            contact_pairs=[p.key for p in pairs])
     return BoxTrackingTask(cfg, motion.to(physics.device), objects.to(physics.device), scene, physics, seed=seed,
-                           autoreset=autoreset)
+                           autoreset=autoreset, terrain=terrain)
 
 
 class BoxTrackEnv(TrackEnv):
@@ -209,7 +221,8 @@ class BoxTrackEnv(TrackEnv):
         from envs.render import TrackingRenderer
 
         task = self.task
-        return TrackingRenderer(*self._render_size, objects=task.scene, condim=task.cfg.objects.condim)
+        return TrackingRenderer(*self._render_size, objects=task.scene, condim=task.cfg.objects.condim,
+                                terrain=task.terrain)
 
     def _ghost_qpos(self) -> np.ndarray:
         task = self.task

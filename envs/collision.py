@@ -26,8 +26,9 @@ legs) becomes one box per piece; anything else is decomposed into convex hulls b
 (``coacd`` on PyPI; Wei et al., SIGGRAPH 2022), cached on disk by mesh content and settings
 (``$OTR_CACHE_DIR``, else ``~/.cache/otr-gym``), since it takes seconds to a minute.
 
-Frames: everything is in the object's own frame (the frame of the reference's object pose),
-metres; box orientations are wxyz quaternions.
+Frames: everything is in the object's own frame (the frame of the reference's object pose;
+for a terrain mesh, ``envs.terrain``, the clip's world frame), metres; box orientations are
+wxyz quaternions, so a fitted box keeps the mesh's orientation (a tilted ramp stays tilted).
 """
 
 from __future__ import annotations
@@ -121,6 +122,25 @@ def fit_box(vertices: np.ndarray, faces: np.ndarray, cfg: CollisionCfg = Collisi
         rot = rot * np.array([1.0, 1.0, -1.0])
     box = BoxShape(half_extents=half, pos=transform[:3, 3].copy(), quat_wxyz=matrix_to_quat(rot))
     return BoxFit(box, float(hull.volume / np.prod(2 * half)), float(np.mean(gap < tol)), float(np.mean(nearest < max(tol, 2.0 * spacing))))
+
+
+def load_mesh(path: str | Path, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3), faces (F, 3)) of a mesh file (any trimesh-readable format, as stored:
+    no unit or frame conversion). ``what`` says whose mesh it is in errors ("mesh of clip.npz:
+    object 'box'"); a missing or unreadable file, or one without faces, raises
+    ``CollisionShapeError`` naming the file."""
+    import trimesh
+
+    file = Path(path).expanduser()
+    if not file.is_file():
+        raise CollisionShapeError(f"{file}: {what} not found")
+    try:
+        mesh = trimesh.load(file, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise CollisionShapeError(f"{file}: {what} cannot be read ({type(exc).__name__}: {exc})") from exc
+    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+        raise CollisionShapeError(f"{file}: {what} has no faces (not a mesh file, or an empty one)")
+    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
 
 
 def collision_shapes(vertices: np.ndarray | None, faces: np.ndarray | None, what: str,

@@ -74,9 +74,9 @@ class CommandCfg:
     adaptive_kernel_size: int = 1  # §2: λⁱ kernel of size 1 (no smoothing)
     adaptive_lambda: float = 0.8  # §2
     #: Motion libraries (ours): this share of the starts is spread evenly over the clips, the
-    #: rest follows each clip's failures. Without it one clip the policy cannot track yet (a
-    #: crawl on a slope that is not simulated) drew 93 % of all starts after 700 iterations of
-    #: an 8-clip library and starved the others. 0 = one distribution over all bins (§2).
+    #: rest follows each clip's failures. Without it one clip the policy cannot track yet (then
+    #: Holosoma's crawl, its slope not yet simulated) drew 93 % of all starts after 700
+    #: iterations of an 8-clip library and starved the others. 0 = one distribution over all bins (§2).
     #: One clip: no effect.
     library_clip_floor: float = 0.5
     #: Clips shorter than this are rejected at load (a half-second clip is almost surely a bad export).
@@ -154,8 +154,8 @@ class RandomizationCfg:
     """Domain randomisation (§6, MJ column unless noted)."""
 
     enabled: bool = True
-    #: Sliding friction, one draw per env shared by the foot geoms and the ground (MuJoCo
-    #: combines a pair's friction by max, so the ground must take the same draw).
+    #: Sliding friction, one draw per env shared by the foot geoms, the ground and the terrain
+    #: (MuJoCo combines a pair's friction by max, so the ground must take the same draw).
     friction_range: tuple[float, float] = (0.3, 1.2)
     friction_geoms: tuple[str, ...] = ("ground/ground",) + tuple(
         f"{side}_foot{i}_collision" for side in ("left", "right") for i in range(1, 8))
@@ -169,6 +169,33 @@ class RandomizationCfg:
 
 
 @dataclass
+class TerrainCfg:
+    """Terrain of references recorded on uneven ground (``envs.terrain``; ours, not in RL_SPEC)."""
+
+    #: Clip -> terrain mesh file (any trimesh-readable format; metres, in the clip's own world
+    #: frame, z up, floor at z = 0). A clip is named by its file stem (its label), a trailing
+    #: part of its path ("holosoma/motion_crawl_slope", ".npz" optional) or its path. Clip
+    #: lists can give it per line instead (``crawl.npz terrain=slope.obj``).
+    meshes: dict[str, str] = field(default_factory=dict)
+    #: Libraries: each terrain gets its own origin this far apart along +x (m); clips without
+    #: terrain stay at the origin.
+    library_spacing_m: float = 50.0
+    #: A clip whose reference (bounding box grown by this, m) comes near another origin's
+    #: terrain is refused: its robot could wander onto it.
+    reach_margin_m: float = 2.0
+    #: Collision pieces whose top lies at most this high (m) are dropped: the floor plane
+    #: provides them (a mesh's floor slab).
+    floor_tolerance_m: float = 1e-3
+    #: MuJoCo-Warp per-world buffers of a model with terrain, at least (``sim`` values when
+    #: larger): a body on the terrain can touch the ramp and the floor plane at once (Holosoma's
+    #: crawl on its slope, replayed kinematically: up to 38 contacts in a frame; 40 is the flat
+    #: default), 4 rows per pyramidal contact.
+    nconmax: int = 64
+    njmax: int = 400
+    collision: CollisionCfg = field(default_factory=CollisionCfg)
+
+
+@dataclass
 class TrackEnvCfg:
     sim: SimCfg = field(default_factory=SimCfg)
     action: ActionCfg = field(default_factory=ActionCfg)
@@ -177,6 +204,7 @@ class TrackEnvCfg:
     rewards: dict[str, RewardTermCfg] = field(default_factory=_rewards)
     terminations: dict[str, TerminationTermCfg] = field(default_factory=_terminations)
     randomization: RandomizationCfg = field(default_factory=RandomizationCfg)
+    terrain: TerrainCfg = field(default_factory=TerrainCfg)
     #: Vector env, same-step autoreset: also return the pre-reset observation of finished envs
     #: in info["final_obs"] (Gymnasium convention; costs one more observation pass per step).
     final_obs: bool = True

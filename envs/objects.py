@@ -24,13 +24,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import mujoco
 import numpy as np
 import torch
 
-from envs.collision import BoxShape, CollisionShape, CollisionShapeError, collision_shapes
+from envs.collision import BoxShape, CollisionShape, CollisionShapeError, collision_shapes, load_mesh
 from envs.config import ObjectsCfg
 from otr_gym.reference import InvalidReferenceError, Reference
 from otr_gym.rotations import quat_apply_inverse, quat_error_angle
@@ -138,7 +137,7 @@ def scene_objects(refs: Sequence[Reference], cfg: ObjectsCfg) -> SceneObjects:
                          f"({[o.name for o in first.objects]})")
     out = []
     for i, track in enumerate(first.objects):
-        static = all(_is_static(ref.objects[i], cfg) for ref in refs)
+        static = all(is_static(ref.objects[i], cfg) for ref in refs)
         for ref in refs[1:]:
             _check_same_object(first, ref, i, static)
         out.append(_scene_object(first, i, static, cfg))
@@ -148,7 +147,8 @@ def scene_objects(refs: Sequence[Reference], cfg: ObjectsCfg) -> SceneObjects:
     return SceneObjects(tuple(out), first.source)
 
 
-def _is_static(track, cfg: ObjectsCfg) -> bool:
+def is_static(track, cfg: ObjectsCfg) -> bool:
+    """Whether an object track stays within the static tolerances over its clip (a fixed body)."""
     moved = np.linalg.norm(track.pos_w - track.pos_w[0], axis=-1).max()
     turned = quat_error_angle(track.quat_w, np.broadcast_to(track.quat_w[0], track.quat_w.shape)).max()
     return bool(moved <= cfg.static_tolerance_m and turned <= cfg.static_tolerance_rad)
@@ -175,7 +175,10 @@ def _scene_object(ref: Reference, i: int, static: bool, cfg: ObjectsCfg) -> Scen
     override = cfg.overrides.get(track.name)
     vertices, faces = track.mesh_vertices, track.mesh_faces
     if override is not None and override.mesh is not None:
-        vertices, faces = _load_mesh(override.mesh, what)
+        try:
+            vertices, faces = load_mesh(override.mesh, f"mesh of {what}")
+        except CollisionShapeError as exc:
+            raise InvalidReferenceError(str(exc)) from exc
     if override is not None and override.box_half_extents is not None:
         half = np.asarray(override.box_half_extents, np.float64)
         if half.shape != (3,) or not np.all(half > 0):
@@ -201,21 +204,6 @@ def _scene_object(ref: Reference, i: int, static: bool, cfg: ObjectsCfg) -> Scen
                        quat_w=np.asarray(track.quat_w[0], np.float64),
                        visual_vertices=None if vertices is None else np.asarray(vertices, np.float64),
                        visual_faces=None if faces is None else np.asarray(faces, np.int64))
-
-
-def _load_mesh(path: str, what: str) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
-    file = Path(path).expanduser()
-    if not file.is_file():
-        raise FileNotFoundError(f"{file}: mesh of {what} not found")
-    try:
-        mesh = trimesh.load(file, force="mesh", process=False)
-    except Exception as exc:  # trimesh raises many types for unreadable files
-        raise InvalidReferenceError(f"{file}: mesh of {what} cannot be read ({exc})") from exc
-    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-        raise InvalidReferenceError(f"{file}: mesh of {what} has no faces")
-    return np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces, np.int64)
 
 
 def object_qpos(pos_w: torch.Tensor, quat_w: torch.Tensor) -> torch.Tensor:

@@ -1,7 +1,8 @@
 """Offscreen frames of the robot with a translucent ghost of the reference pose.
 
 Uses ``mujoco.Renderer`` on the scene *with* visual meshes (the simulation model has none),
-plus the box task's objects (their given meshes; collision geoms hidden).
+plus the box task's objects (their given meshes; collision geoms hidden) and the terrain (its
+collision geometry, as simulated).
 Headless machines need an offscreen OpenGL: set ``MUJOCO_GL=egl`` (GPU/EGL) or
 ``MUJOCO_GL=osmesa`` (software) before anything imports mujoco.
 """
@@ -21,14 +22,17 @@ GHOST_RGBA = (0.35, 0.75, 1.0, 0.35)
 
 class TrackingRenderer:
     """Renders G1 configurations (qpos [xyz, wxyz, 29 joints], then 7 per moving object when
-    ``objects`` (``envs.objects.SceneObjects``) are given) from a camera following the pelvis.
+    ``objects`` (``envs.objects.SceneObjects``) are given) from a camera following the pelvis,
+    on the ``terrain`` (``envs.terrain.SceneTerrain``) when given.
     The ghost shows the robot and the moving objects (static ones are drawn once)."""
 
     def __init__(self, width: int = 640, height: int = 480, distance_m: float = 3.0, azimuth_deg: float = 135.0,
-                 elevation_deg: float = -15.0, objects=None, condim: int = 3):
+                 elevation_deg: float = -15.0, objects=None, condim: int = 3, terrain=None):
         spec = build_scene(SceneSpec(visual=True)).spec
         if objects is not None:
             objects.add_to(spec, visual=True, condim=condim)
+        if terrain is not None:
+            terrain.add_to(spec)
         self.model = spec.compile()
         self.model.vis.global_.offwidth = max(self.model.vis.global_.offwidth, width)
         self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)

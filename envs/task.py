@@ -35,6 +35,7 @@ from envs.mdp.commands import MotionCommand
 from envs.mdp.motion import MotionLibrary
 from envs.mdp.randomization import DomainRandomizer
 from envs.mdp.state import TrackingState, aligned_targets, root_velocities_b
+from envs.terrain import SceneTerrain, flat
 from otr_gym import robot
 
 OBS_GROUPS = ("policy", "critic")
@@ -60,8 +61,10 @@ class TrackingTask:
     """Tracking MDP for ``backend.num_worlds`` envs on ``motion`` clips, configured by ``cfg``."""
 
     def __init__(self, cfg: TrackEnvCfg, motion: MotionLibrary, backend: PhysicsBackend, seed: int = 0,
-                 autoreset: bool = True):
+                 autoreset: bool = True, terrain: SceneTerrain | None = None):
         self.cfg, self.motion, self.backend, self.autoreset = cfg, motion, backend, autoreset
+        #: the terrain in ``backend``'s model and every clip's origin (``motion`` is shifted by it)
+        self.terrain = terrain if terrain is not None else flat(motion.num_clips)
         self.num_envs, self.device = backend.num_worlds, backend.device
         self.num_actions = robot.NUM_JOINTS
         self.step_dt = float(backend.model.opt.timestep) * cfg.sim.decimation
@@ -91,7 +94,8 @@ class TrackingTask:
         default = torch.as_tensor(robot.DEFAULT_JOINT_POS, dtype=torch.float32, device=self.device)
         self.default_joint_pos = default.repeat(self.num_envs, 1)
         if cfg.randomization.enabled:
-            self.randomizer = DomainRandomizer(cfg.randomization, backend, self.step_dt, self.generator)
+            self.randomizer = DomainRandomizer(cfg.randomization, backend, self.step_dt, self.generator,
+                                               extra_friction_geoms=self.terrain.geom_names())
             self.default_joint_pos = self.default_joint_pos + self.randomizer.apply_startup()
 
         self._rewards = [(n, _resolve(reward_terms, t.fn, "reward"), t.weight, t.params)
@@ -226,6 +230,7 @@ class TrackingTask:
             "policy_dt": self.step_dt,
             "physics_dt": float(self.backend.model.opt.timestep),
             "decimation": self.cfg.sim.decimation,
+            **({"terrain": self.terrain.info()} if self.terrain.terrains else {}),
         }
 
     # ------------------------------------------------------------ internals

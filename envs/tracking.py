@@ -22,8 +22,9 @@ with ``cfg.final_obs``, ``info["final_obs"]`` holds the last one (rows where
 Common keyword arguments: ``reference`` (file, folder of ``*.npz`` = multi-clip library,
 ``Reference`` or list of them; resampled to 50 fps; bad files raise
 ``InvalidReferenceError`` naming the file), ``cfg`` (``TrackEnvCfg``, YAML path or None for
-``configs/env/track.yaml``), ``evaluation`` (True: no randomisation, no noise, every clip from
-frame 0, the episode ends with the clip), ``seed``.
+``configs/env/track.yaml``; ``cfg.terrain`` gives clips a terrain mesh, as do ``terrain=``
+options in clip lists: ``envs.terrain``), ``evaluation`` (True: no randomisation, no noise,
+every clip from frame 0, the episode ends with the clip), ``seed``.
 
 Spaces: observation ``Dict(policy=Box(154), critic=Box(286))`` float32 clipped to ±100
 (RL_SPEC §3; layout in ``obs_layout``); action ``Box(29)`` in [−100, 100], joint order
@@ -64,8 +65,9 @@ from gymnasium.vector.utils import batch_space
 
 from envs.backends import build_sim_model, make_backend
 from envs.config import TrackEnvCfg, load_track_config
-from envs.mdp.motion import MotionLibrary, ReferenceSource
+from envs.mdp.motion import MotionLibrary, ReferenceSource, prepared_references
 from envs.task import TrackingTask
+from envs.terrain import contact_buffers, place_terrain, terrain_meshes
 
 _PER_WORLD_FIELDS = ("geom_friction", "body_ipos")  # randomised per env (§6)
 
@@ -78,13 +80,14 @@ def make_task(reference: ReferenceSource, num_envs: int, backend: str, device: s
         cfg = load_track_config(cfg)
     if evaluation:
         cfg = cfg.for_evaluation()
-    motion = MotionLibrary.load(reference, cfg.command.tracked_bodies, fps=cfg.command.fps,
-                                min_clip_frames=cfg.command.min_clip_frames)
-    model = build_sim_model(cfg.sim.contact_bodies)
+    refs = prepared_references(reference, cfg.command.tracked_bodies, cfg.command.fps, cfg.command.min_clip_frames)
+    refs, terrain = place_terrain(refs, cfg.terrain, terrain_meshes(cfg.terrain.meshes, reference))
+    motion = MotionLibrary.from_references(refs, cfg.command.tracked_bodies, cfg.command.fps)
+    model = build_sim_model(cfg.sim.contact_bodies, terrain=terrain)
     physics = make_backend(backend, model, num_envs, device, cfg.sim.decimation, cfg.sim.contact_bodies,
-                           cfg.sim.nconmax, cfg.sim.njmax,
+                           *contact_buffers(cfg.sim, cfg.terrain, terrain),
                            per_world_fields=_PER_WORLD_FIELDS if cfg.randomization.enabled else ())
-    return TrackingTask(cfg, motion.to(physics.device), physics, seed=seed, autoreset=autoreset)
+    return TrackingTask(cfg, motion.to(physics.device), physics, seed=seed, autoreset=autoreset, terrain=terrain)
 
 
 def _obs_space(task: TrackingTask) -> spaces.Dict:
@@ -147,7 +150,7 @@ class TrackEnv(gym.Env):
     def _make_renderer(self):
         from envs.render import TrackingRenderer
 
-        return TrackingRenderer(*self._render_size)
+        return TrackingRenderer(*self._render_size, terrain=self.task.terrain)
 
     def _ghost_qpos(self) -> np.ndarray:
         """The reference configuration at the target frame, in the simulation's qpos layout."""

@@ -221,6 +221,15 @@ class Reference:
                        body_lin_vel_w=linear_velocity_from_positions(self.body_pos_w, dt),
                        body_ang_vel_w=angular_velocity_from_quats(self.body_quat_w, dt), objects=objects)
 
+    def translated(self, offset_m) -> Reference:
+        """A copy moved by ``offset_m`` (3,) (m, world): root, body and object positions shift;
+        orientations, velocities and contact annotations (witnesses in channel frames) do not."""
+        offset = np.asarray(offset_m, np.float64).reshape(3)
+        joint_pos = self.joint_pos.copy()
+        joint_pos[:, :3] += offset
+        objects = [replace(o, pos_w=o.pos_w + offset) for o in self.objects]
+        return replace(self, joint_pos=joint_pos, body_pos_w=self.body_pos_w + offset, objects=objects)
+
     def resampled(self, fps: float) -> Reference:
         """Resample to ``fps`` (linear for positions and joints, slerp for quaternions);
         velocities are recomputed by finite differences. Contacts use the nearest frame."""
@@ -470,33 +479,73 @@ def _check_unit(src: str, key: str, q: np.ndarray) -> None:
 
 #: Suffixes of clip-list files: one reference path per line, relative to the list's folder.
 LIST_SUFFIXES = (".txt", ".list")
+#: Options a clip-list line may give after its path, as ``KEY=VALUE`` words.
+CLIP_OPTIONS = ("terrain",)
+
+
+@dataclass(frozen=True)
+class ClipEntry:
+    """One clip named by ``clip_entries``, with the options its clip-list line gave."""
+
+    path: Path
+    terrain: Path | None = None  # terrain mesh of the clip (envs.terrain), None: flat floor
 
 
 def list_references(path: str | Path) -> list[Path]:
     """A single file, every ``*.npz`` of a folder (sorted), or the entries of a list file
     (``.txt``/``.list``: one file or folder per line, relative to the list's folder; blank lines
     and ``#`` comments ignored), each expanded the same way; a missing path raises naming it."""
+    return [e.path for e in clip_entries(path)]
+
+
+def clip_entries(path: str | Path) -> list[ClipEntry]:
+    """``list_references`` with the options of clip-list lines: after the path, words
+    ``KEY=VALUE`` with KEY in ``CLIP_OPTIONS``; ``terrain=MESH`` (relative to the list's folder)
+    applies to every clip the line names (a folder: all its clips). An unknown option raises
+    naming the list and the line."""
     path = Path(path)
     if path.is_dir():
         files = sorted(path.glob("*.npz"))
         if not files:
             raise InvalidReferenceError(f"{path}: folder holds no .npz references")
-        return files
+        return [ClipEntry(f) for f in files]
     if not path.is_file():
         raise InvalidReferenceError(f"{path}: no such reference file or folder")
-    if path.suffix.lower() in LIST_SUFFIXES:
-        out: list[Path] = []
-        for n, line in enumerate(path.read_text().splitlines(), 1):
-            entry = line.split("#", 1)[0].strip()
-            if not entry:
-                continue
-            item = Path(entry).expanduser()
-            item = item if item.is_absolute() else path.parent / item
-            try:
-                out.extend(list_references(item))
-            except InvalidReferenceError as exc:
-                raise InvalidReferenceError(f"{path}, line {n}: {exc}") from exc
-        if not out:
-            raise InvalidReferenceError(f"{path}: clip list names no reference")
-        return out
-    return [path]
+    if path.suffix.lower() not in LIST_SUFFIXES:
+        return [ClipEntry(path)]
+    out: list[ClipEntry] = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        entry = line.split("#", 1)[0].strip()
+        if not entry:
+            continue
+        where = f"{path}, line {n}"
+        entry, options = _clip_options(entry, where)
+        item = _relative_to(path, entry)
+        terrain = _relative_to(path, options["terrain"]) if "terrain" in options else None
+        try:
+            out.extend(replace(e, terrain=terrain or e.terrain) for e in clip_entries(item))
+        except InvalidReferenceError as exc:
+            raise InvalidReferenceError(f"{where}: {exc}") from exc
+    if not out:
+        raise InvalidReferenceError(f"{path}: clip list names no reference")
+    return out
+
+
+def _clip_options(entry: str, where: str) -> tuple[str, dict[str, str]]:
+    """(path, {option: value}) of a clip-list line: trailing ``KEY=VALUE`` words are options
+    (a path may hold spaces, not a last word with '=')."""
+    words = entry.split()
+    options: dict[str, str] = {}
+    while len(words) > 1 and "=" in words[-1]:
+        key, _, value = words.pop().partition("=")
+        if key not in CLIP_OPTIONS:
+            raise InvalidReferenceError(f"{where}: unknown option '{key}' (options: {', '.join(CLIP_OPTIONS)})")
+        if not value:
+            raise InvalidReferenceError(f"{where}: option '{key}' has no value ({key}=PATH)")
+        options[key] = value
+    return (" ".join(words) if options else entry), options
+
+
+def _relative_to(list_file: Path, entry: str) -> Path:
+    item = Path(entry).expanduser()
+    return item if item.is_absolute() else list_file.parent / item

@@ -11,7 +11,8 @@ used for rendering (``otr_gym.scene`` with ``visual=True``):
   that body (``data="force"``, ``reduce="netforce"``), the same on CPU and GPU;
 - with objects (OTR-G1-BoxTrack-v0, ``envs.objects``): their bodies, plus one contact sensor
   per ``ContactPair`` reporting the net force between exactly those two (a hand and the box,
-  the box and the table or the ground).
+  the box and the table or the ground);
+- with terrain (``envs.terrain``): one fixed body of collision geoms per terrain mesh.
 """
 
 from __future__ import annotations
@@ -42,13 +43,15 @@ _OBJ_TYPES = {"body": mujoco.mjtObj.mjOBJ_BODY, "geom": mujoco.mjtObj.mjOBJ_GEOM
 
 
 def build_sim_model(contact_bodies: Sequence[str], objects=None, contact_pairs: Sequence[ContactPair] = (),
-                    condim: int = 3) -> mujoco.MjModel:
+                    condim: int = 3, terrain=None) -> mujoco.MjModel:
     """Compile the G1 + ground model without visual meshes, with contact sensors on
     ``contact_bodies``; ``objects`` (``envs.objects.SceneObjects``) and their ``contact_pairs``
-    sensors are added when given."""
+    sensors, and ``terrain`` (``envs.terrain.SceneTerrain``) are added when given."""
     spec = build_scene(SceneSpec(visual=False)).spec
     if objects is not None:
         objects.add_to(spec, visual=False, condim=condim)
+    if terrain is not None:
+        terrain.add_to(spec)
     for sensor in list(spec.sensors):
         spec.delete(sensor)
     body_names = {b.name for b in spec.bodies}

@@ -20,8 +20,11 @@ from otr_gym.rotations import quat_apply_inverse
 
 
 class DomainRandomizer:
-    def __init__(self, cfg: RandomizationCfg, backend: PhysicsBackend, step_dt: float, generator: torch.Generator):
+    def __init__(self, cfg: RandomizationCfg, backend: PhysicsBackend, step_dt: float, generator: torch.Generator,
+                 extra_friction_geoms: Sequence[str] = ()):
+        """``extra_friction_geoms`` take the friction draw with ``cfg.friction_geoms`` (the terrain)."""
         self.cfg, self.backend, self.step_dt, self.gen = cfg, backend, step_dt, generator
+        self.friction_geoms = tuple(cfg.friction_geoms) + tuple(extra_friction_geoms)
         self.num_envs, self.device = backend.num_worlds, backend.device
         self._lin = torch.as_tensor(cfg.push_lin_vel_mps, dtype=torch.float32, device=self.device)
         self._ang = torch.as_tensor(cfg.push_ang_vel_radps, dtype=torch.float32, device=self.device)
@@ -30,8 +33,8 @@ class DomainRandomizer:
     def apply_startup(self) -> torch.Tensor:
         """Randomise friction and the COM in the backend; return the default-pose bias (N, 29) (rad)."""
         cfg, m = self.cfg, self.backend.model
-        geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in cfg.friction_geoms]
-        missing = [g for g, i in zip(cfg.friction_geoms, geoms, strict=True) if i < 0]
+        geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in self.friction_geoms]
+        missing = [g for g, i in zip(self.friction_geoms, geoms, strict=True) if i < 0]
         if missing:
             raise KeyError(f"randomization.friction_geoms {missing} are not geoms of the simulation model")
         lo, hi = cfg.friction_range
