@@ -42,7 +42,7 @@ from tensordict import TensorDict
 
 from agents import runs
 from agents.devices import resolve_device
-from agents.library import clip_labels, load_library
+from agents.library import clip_labels, load_library, with_terrain
 from agents.metrics import EpisodeAccumulator, ObjectEpisodeMetrics, summarize
 from agents.policy import TrainedPolicy, load_policy
 from agents.vecenv import make_vec_env
@@ -105,6 +105,7 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         reference = first.run_config["reference"]
     overrides = eval_env_overrides(first.train_cfg.env, randomize)
     library = load_library(reference, first.train_cfg.task, overrides)
+    overrides = with_terrain(overrides, library, [r.source for r in library.references])
     if num_envs is None:
         num_envs = len(library.references) * (256 if randomize else 1)
     if num_envs < 1:

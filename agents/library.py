@@ -10,6 +10,8 @@ records both lists (``config.yaml``: ``reference_info.clips`` / ``reference_info
 Clips of one library may differ in length and frame rate: each is resampled to 50 fps at
 load. OTR-G1-BoxTrack-v0 simulates one object set, so its library must share it: clips whose
 objects differ are refused when the environment is built (``envs.objects.scene_objects``).
+A clip may come with a terrain mesh (``env.terrain.meshes`` or ``terrain=`` on its clip-list
+line; ``envs.terrain``): ``with_terrain`` puts both into the run's env config.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from pathlib import Path
 
 from envs.config import load_env_config
 from envs.mdp.motion import prepared_references
+from envs.terrain import meshes_for_clips, terrain_meshes
 from otr_gym.reference import InvalidReferenceError, Reference, list_references
 
 #: What a broken clip file can raise while it is read and prepared.
@@ -57,6 +60,21 @@ class ClipLibrary:
         return {"name": self.name, "path": self.source, "clips": [r.source for r in self.references],
                 "labels": clip_labels([r.source for r in self.references]),
                 "skipped": [{"clip": s.path, "error": s.error} for s in self.skipped]}
+
+
+def with_terrain(env_overrides: dict, library: ClipLibrary, clips: Sequence[str] | None = None) -> dict:
+    """``env_overrides`` with ``terrain.meshes`` completed by the ``terrain=`` options of the
+    library's clip lists and every mesh path made absolute: what the run's config.yaml records,
+    so that resume, evaluation, play and the sim robot simulate the same terrain. Given
+    ``clips`` (sources), only the entries that name one of them are kept (evaluating or playing
+    part of a library)."""
+    terrain = dict(env_overrides.get("terrain") or {})
+    meshes = terrain_meshes(terrain.get("meshes") or {}, library.spec)
+    if clips is not None:
+        meshes = meshes_for_clips(meshes, clips)
+    if not meshes and "meshes" not in terrain:
+        return env_overrides
+    return {**env_overrides, "terrain": {**terrain, "meshes": meshes}}
 
 
 def reference_spec(reference: str | Path | Sequence[str | Path]) -> tuple[str, ...]:

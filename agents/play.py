@@ -3,7 +3,8 @@
 Runs the single CPU-MuJoCo env (``gymnasium.make``) in evaluation mode (frame 0, no
 randomisation or noise, the episode ends with the clip or a termination) with the policy's
 mean action, and records the env's frames: the robot plus a translucent ghost of the reference
-(for OTR-G1-BoxTrack-v0 also the box and the table, and a ghost of the reference box).
+(for OTR-G1-BoxTrack-v0 also the box and the table, and a ghost of the reference box), on the
+clip's terrain when the run gives it one (at the origin 0: the clip is played alone).
 Offscreen rendering needs ``MUJOCO_GL=egl`` (GPU / EGL) or ``osmesa``; egl is the default here.
 """
 
@@ -34,7 +35,7 @@ def play(run_or_checkpoint, video: str | Path, reference: str | Path | None = No
     import imageio.v2 as imageio
 
     import otr_gym  # noqa: F401  (registers the environments)
-    from agents.library import clip_labels, load_library
+    from agents.library import clip_labels, load_library, with_terrain
     from envs.config import load_env_config
 
     policy = load_policy(run_or_checkpoint, "cpu")
@@ -45,7 +46,7 @@ def play(run_or_checkpoint, video: str | Path, reference: str | Path | None = No
         raise ValueError(f"--clip {clip!r}: not a clip of the library (clips: {', '.join(labels)})")
     index = labels.index(clip) if clip is not None else 0
     chosen = library.references[index]
-    cfg = load_env_config(policy.train_cfg.task, overrides=overrides)
+    cfg = load_env_config(policy.train_cfg.task, overrides=with_terrain(overrides, library, [chosen.source]))
     env = gymnasium.make(policy.train_cfg.task, reference=chosen, render_mode="rgb_array", cfg=cfg,
                          evaluation=True, width=width, height=height)
     fps = env.metadata["render_fps"]

@@ -24,13 +24,16 @@ rank 0 writing the run; stopping (budget, Ctrl-C) and resuming work the same.
 ``--set KEY=VALUE`` (repeatable) overrides any key of the training config by its dotted path,
 the environment's under ``env.`` (the task's configs/env YAML layout); values are YAML, e.g.
 ``--set env.rewards.hand_contact.weight=0`` (an ablation) or
-``--set env.objects.overrides.largebox.mesh=largebox.obj`` (a reference without embedded mesh).
-They are stored in the run, so evaluation, export and play use them too.
+``--set env.objects.overrides.largebox.mesh=largebox.obj`` (a reference without embedded mesh)
+or ``--set env.terrain.meshes.motion_crawl_slope=terrain_slope.obj`` (a clip recorded on
+terrain, ``envs.terrain``; clip lists can say ``crawl.npz terrain=slope.obj``). They are stored
+in the run (terrain mesh paths made absolute), so evaluation, export and play use them too.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import random
 import subprocess
@@ -45,7 +48,7 @@ import yaml
 
 from agents import distributed, runs
 from agents.config import TrainCfg, load_train_config, train_config_from_dict
-from agents.library import ClipLibrary, load_library
+from agents.library import ClipLibrary, load_library, with_terrain
 from agents.runner import TrackingRunner
 from agents.stopping import StopConditions, TrainingStopped
 from agents.vecenv import RslRlVecEnv, make_vec_env
@@ -122,6 +125,7 @@ def _setup(args: argparse.Namespace) -> tuple[TrainCfg, ClipLibrary, Path | None
         reference = args.reference
         run_dir = None
     library = load_library(reference, cfg.task, cfg.env, report=int(os.environ.get("RANK", "0")) == 0)
+    cfg = dataclasses.replace(cfg, env=with_terrain(cfg.env, library))
     record.update(train=cfg.to_dict(), reference=library.source, reference_info=library.info())
     record.setdefault("sessions", []).append({
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),

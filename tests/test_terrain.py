@@ -10,6 +10,7 @@ tilted by 12.6° (Holosoma's slope) and a platform; Holosoma's own slope is chec
 
 from __future__ import annotations
 
+import argparse
 import math
 from pathlib import Path
 
@@ -18,14 +19,20 @@ import numpy as np
 import pytest
 import torch
 import trimesh
+import yaml
 
+from agents import train
+from agents.deploy.messages import JointCommand
+from agents.deploy.safety import STARTUP_KD, STARTUP_KP
+from agents.deploy.sim_robot import SimRobot, SimRobotCfg, initial_pose, sim_terrain
+from agents.library import load_library, with_terrain
 from agents.procedural import WalkSpec, walking_reference
 from envs.backends import MuJoCoBackend
 from envs.collision import BoxShape, collision_shapes
-from envs.config import TerrainCfg, load_track_config
+from envs.config import TRACK_TASK, TerrainCfg, load_track_config
 from envs.mdp.metrics import mpjpe_root_relative
 from envs.terrain import clip_matches, load_terrain, place_terrain, shape_corners
-from envs.tracking import make_task
+from envs.tracking import TrackEnv, make_task
 from otr_gym.reference import InvalidReferenceError, Reference
 from otr_gym.rotations import quat_to_matrix
 from otr_gym.scene import SceneSpec, build_scene
@@ -249,6 +256,58 @@ def test_a_clip_list_line_gives_its_clips_a_terrain(platform_clips, tmp_path):
     task = make_task(listing, 2, "mujoco", "cpu", evaluation=True)
     assert task.terrain.clip_origin_w[:, 0].tolist() == [0.0, 50.0]
     assert task.terrain.terrains[0].mesh == str(tmp_path / mesh.name)
+
+
+def test_the_run_config_records_clip_list_terrain_with_absolute_paths(platform_clips, tmp_path):
+    """``with_terrain``: what train stores in config.yaml (all of it) and evaluation or play of
+    part of the library use (the entries of those clips)."""
+    flat, raised, mesh = platform_clips
+    listing = tmp_path / "clips.txt"
+    listing.write_text(f"{flat}\n{raised} terrain={mesh}\n")
+    library = load_library(listing, TRACK_TASK, report=False)
+    overrides = with_terrain({"sim": {"decimation": 4}}, library)
+    assert overrides == {"sim": {"decimation": 4}, "terrain": {"meshes": {str(raised): str(mesh)}}}
+    assert with_terrain(overrides, library, [str(raised)]) == overrides
+    assert with_terrain(overrides, library, [str(flat)])["terrain"]["meshes"] == {}  # playing the flat clip alone
+
+
+def test_a_run_records_its_terrain_with_absolute_paths(platform_clips, tmp_path, monkeypatch):
+    """``otr train`` stores the terrain (a relative --set path made absolute) in the run record
+    that resume, evaluation and play read back."""
+    flat, raised, mesh = platform_clips
+    monkeypatch.chdir(mesh.parent)
+    parser = argparse.ArgumentParser()
+    train.configure_parser(parser)
+    args = parser.parse_args(["--reference", str(flat), str(raised), "--set",
+                              f"env.terrain.meshes.platform_walk={mesh.name}"])
+    cfg, _, _, _, record = train._setup(args)
+    assert record["train"]["env"]["terrain"]["meshes"] == {"platform_walk": str(mesh)}
+    assert load_track_config(overrides=cfg.env).terrain.meshes == {"platform_walk": str(mesh)}
+
+
+def test_play_renders_the_terrain_and_the_sim_robot_stands_on_it(platform_clips, tmp_path):
+    """The single env of ``otr play`` draws the terrain (its renderer's model has the platform),
+    and ``otr sim-robot --terrain RUN`` simulates the run's terrain of the clip: a robot held in
+    the default pose for 0.5 s stands 5 cm (the platform) higher than on the floor."""
+    flat, raised, mesh = platform_clips
+    overrides = _terrain_cfg({"platform_walk": mesh})
+    env = TrackEnv(raised, render_mode="rgb_array", cfg=load_track_config(overrides=overrides), evaluation=True)
+    renderer = env._make_renderer()
+    assert renderer.model.body("terrain/0").pos.tolist() == [0.0, 0.0, 0.0]
+    assert sorted(renderer.model.geom("terrain/0/geom0").size) == pytest.approx([0.075, 1.0, 2.0])
+    renderer.close()
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(yaml.safe_dump({"train": {"task": TRACK_TASK, "env": overrides}}))
+    heights = []
+    for terrain in (None, sim_terrain(str(run), str(raised)), sim_terrain(str(mesh), str(raised))):
+        start = initial_pose(str(flat)) + np.r_[0.0, 0.0, 0.0 if terrain is None else PLATFORM_TOP_M, np.zeros(33)]
+        sim = SimRobot(SimRobotCfg(), start, terrain)
+        for _ in range(250):
+            sim.step(JointCommand(q=start[7:], dq=np.zeros(29), kp=STARTUP_KP, kd=STARTUP_KD, tau=np.zeros(29)))
+        heights.append(sim.data.qpos[2])
+    assert heights[1] - heights[0] == pytest.approx(PLATFORM_TOP_M, abs=0.005)
+    assert heights[2] == pytest.approx(heights[1], abs=1e-9)
 
 
 def test_terrain_keys_name_clips_by_stem_path_tail_or_path():

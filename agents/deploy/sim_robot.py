@@ -7,10 +7,12 @@ every step it publishes ``rt/lowstate`` (LowState_ with CRC): joint q/dq/ddq/τ,
 (quaternion wxyz, gyroscope in the pelvis frame, accelerometer = specific force in the pelvis
 frame, rpy), and tick = simulated time in ms.
 
-Model: the training MJCF (``otr_gym/assets/g1/g1.xml``) on the ground plane, turned into a
-torque-driven robot at run time: its position actuators become motors (gain 1, no bias,
-ctrl = torque within ±effort), so the PD law runs here in Python exactly as the firmware runs
-it, at ``physics_hz`` (default 500 Hz, timestep 2 ms). Joint armature stays as trained.
+Model: the training MJCF (``otr_gym/assets/g1/g1.xml``) on the ground plane (with
+``--terrain``, also a reference's terrain as the training env simulates it: ``envs.terrain``),
+turned into a torque-driven robot at run time: its position actuators become motors (gain 1,
+no bias, ctrl = torque within ±effort), so the PD law runs here in Python exactly as the
+firmware runs it, at ``physics_hz`` (default 500 Hz, timestep 2 ms). Joint armature stays as
+trained.
 
 Before the first valid LowCmd the robot is frozen in its initial pose (a real G1 would hang in
 its gantry). With ``--gantry`` physics runs from the start, the joints damped as in the G1's
@@ -72,11 +74,15 @@ class SimRobotCfg:
     yaw_rad: float = 0.0  # initial heading (the runner must align to it)
 
 
-def motorised_model(physics_hz: float) -> mujoco.MjModel:
-    """The G1 on the ground with its position actuators turned into torque motors."""
+def motorised_model(physics_hz: float, terrain=None) -> mujoco.MjModel:
+    """The G1 on the ground (and on ``terrain``, ``envs.terrain.SceneTerrain``, when given) with
+    its position actuators turned into torque motors."""
     from otr_gym.scene import SceneSpec, build_scene
 
-    model = build_scene(SceneSpec(ground=True, visual=False)).model
+    spec = build_scene(SceneSpec(ground=True, visual=False)).spec
+    if terrain is not None:
+        terrain.add_to(spec)
+    model = spec.compile()
     names = [model.actuator(i).name for i in range(model.nu)]
     joints = [model.joint(model.actuator_trnid[i, 0]).name for i in range(model.nu)]
     if tuple(joints) != robot.JOINT_NAMES:
@@ -108,9 +114,9 @@ def quat_to_rpy(q: np.ndarray) -> np.ndarray:
 class SimRobot:
     """The physics and the message content, without the transport."""
 
-    def __init__(self, cfg: SimRobotCfg, initial_qpos: np.ndarray | None = None):
+    def __init__(self, cfg: SimRobotCfg, initial_qpos: np.ndarray | None = None, terrain=None):
         self.cfg = cfg
-        self.model = motorised_model(cfg.physics_hz)
+        self.model = motorised_model(cfg.physics_hz, terrain)
         self.data = mujoco.MjData(self.model)
         qpos = robot.default_qpos() if initial_qpos is None else np.array(initial_qpos, dtype=np.float64)
         qpos[3:7] = quat_mul(quat_from_yaw(np.float64(cfg.yaw_rad)), qpos[3:7])
@@ -328,10 +334,36 @@ def initial_pose(reference: str | None) -> np.ndarray | None:
     return np.concatenate([ref.root_pos_w[0], ref.root_quat_w[0], ref.dof_pos[0]])
 
 
+def sim_terrain(terrain: str, reference: str | None):
+    """The ``envs.terrain.SceneTerrain`` of ``--terrain``: a mesh file (metres, in the
+    reference's world frame), or a run folder whose config.yaml gives ``reference``'s clip a
+    terrain (the one it was trained on), at the origin 0 with the run's collision settings."""
+    from agents import runs
+    from agents.config import train_config_from_dict
+    from envs.config import TerrainCfg, load_env_config
+    from envs.terrain import SceneTerrain, load_terrain, meshes_for_clips
+
+    path = Path(terrain).expanduser()
+    cfg, files = TerrainCfg(), {str(path.absolute())}
+    if path.is_dir():
+        if reference is None:
+            raise ValueError(f"--terrain {path}: a run folder gives the terrain of a clip: pass --reference CLIP")
+        train = train_config_from_dict(runs.run_config(path)["train"])
+        cfg = load_env_config(train.task, overrides=train.env or None).terrain
+        files = set(meshes_for_clips(cfg.meshes, [reference]).values())
+        if len(files) != 1:
+            raise ValueError(f"{path}: the run gives {reference} {len(files)} terrain meshes "
+                             f"(env.terrain.meshes: {cfg.meshes or 'none'})")
+    origin = np.zeros(3)
+    return SceneTerrain((load_terrain(files.pop(), (reference or "the sim robot",), origin, cfg),), origin[None])
+
+
 def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", default="lo", help="network interface for DDS (default lo: sim2sim on one machine)")
     p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0)")
     p.add_argument("--reference", default=None, help="start on this reference's first frame (default: default pose)")
+    p.add_argument("--terrain", default=None, help="simulate this terrain: a mesh file (m, the reference's world "
+                   "frame), or a run folder (the terrain its config gives --reference's clip)")
     p.add_argument("--gantry", action="store_true", help="hang the robot in a virtual gantry until --gantry-release")
     p.add_argument("--gantry-release", type=float, default=SimRobotCfg.gantry_release_s,
                    help="seconds after the first LowCmd before the gantry lowers the robot onto its feet "
@@ -359,7 +391,8 @@ def main(args: argparse.Namespace) -> int:
         return 2
     try:
         sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
-                                   yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference))
+                                   yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference),
+                       None if args.terrain is None else sim_terrain(args.terrain, args.reference))
         bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after, args.idle_exit)
         if args.rt_priority:
             from agents.deploy.runner import set_realtime_priority
