@@ -12,8 +12,14 @@
 # prepare writes into REFS_DIR (skipping what exists): the two AMASS clips retargeted by us
 # (smplh_walk_jog_turn, smplx_steps_deep_squat), the three OMOMO clips retargeted by us with
 # their objects (OTR-G1-Track-v0 tracks their robot motion; the box task uses them whole),
-# Holosoma's crawl reference (a link: its slope is not simulated, see README), and the
-# procedural walk and crawl retargeted by `otr demo` — 8 clips, the library of the issue.
+# Holosoma's crawl reference (a link, holosoma_crawl.npz), and the procedural walk and crawl
+# retargeted by `otr demo` — 8 clips, the library of the issue. The crawl was recorded on a
+# slope: prepare also writes REFS_DIR/terrain.sets, one `--set` per line giving it its terrain
+# (env.terrain.meshes.holosoma_crawl=DATA/references/holosoma/terrain_slope.obj, README
+# "Terrain"), and prints it. train and scaling add the terrain.sets of every REFERENCE that is
+# a folder to SETS, so `train OUT_DIR REFS_DIR` simulates the slope (the run records it, so
+# report, evaluate and play do too). The crawl alone:
+#   SETS="$(cat REFS_DIR/terrain.sets)" benchmarks/train_library.sh train out/crawl REFS_DIR/holosoma_crawl.npz
 # Single clips for (a) are then REFS_DIR/smplh_walk_jog_turn.npz and REFS_DIR/smplx_steps_deep_squat.npz.
 #
 # (a) One AMASS clip, 20 minutes of learning under a 10-minute limit per command: the first call
@@ -50,6 +56,12 @@ export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 
 sets=()
 for item in ${SETS:-}; do sets+=(--set "$item"); done
+for ref in ${refs[@]+"${refs[@]}"}; do  # a folder's terrain.sets (written by prepare)
+  [ -f "$ref/terrain.sets" ] || continue
+  while read -r item; do
+    if [ -n "$item" ]; then sets+=(--set "$item"); fi
+  done < "$ref/terrain.sets"
+done
 
 prepare() {
   local data=${DATA:-}
@@ -63,7 +75,10 @@ prepare() {
   for clip in sub3_largebox_003:largebox sub2_largetable_004:largetable sub2_woodchair_000:woodchair; do
     "$py" -m otr_gym.cli retarget "$data/omomo/${clip%%:*}.pt" --object "$data/objects/${clip##*:}.obj" --out "$out"
   done
-  ln -sf "$(cd "$data/references/holosoma" && pwd)/motion_crawl_slope.npz" "$out/holosoma_crawl.npz"
+  local holosoma
+  holosoma=$(cd "$data/references/holosoma" && pwd)
+  ln -sf "$holosoma/motion_crawl_slope.npz" "$out/holosoma_crawl.npz"
+  echo "env.terrain.meshes.holosoma_crawl=$holosoma/terrain_slope.obj" > "$out/terrain.sets"
   local tmp
   tmp=$(mktemp -d)
   for kind in walk crawl; do
@@ -73,6 +88,7 @@ prepare() {
   done
   rm -rf "$tmp"
   ls -1 "$out"/*.npz
+  echo "terrain ($out/terrain.sets, added to SETS by train and scaling): $(cat "$out/terrain.sets")"
 }
 
 runs_dir=${RUNS_DIR:-$out/runs}
