@@ -14,11 +14,12 @@
 # their objects (OTR-G1-Track-v0 tracks their robot motion; the box task uses them whole),
 # Holosoma's crawl reference (a link, holosoma_crawl.npz), and the procedural walk and crawl
 # retargeted by `otr demo` — 8 clips, the library of the issue. The crawl was recorded on a
-# slope: prepare also writes REFS_DIR/terrain.sets, one `--set` per line giving it its terrain
-# (env.terrain.meshes.holosoma_crawl=DATA/references/holosoma/terrain_slope.obj, README
-# "Terrain"), and prints it. train and scaling add the terrain.sets of every REFERENCE that is
-# a folder to SETS, so `train OUT_DIR REFS_DIR` simulates the slope (the run records it, so
-# report, evaluate and play do too). The crawl alone:
+# slope: prepare copies it (terrain_slope.obj) to REFS_DIR/holosoma_crawl_terrain.obj and writes
+# REFS_DIR/terrain.sets, one `--set` per line giving the crawl its terrain
+# (env.terrain.meshes.holosoma_crawl=REFS_DIR/holosoma_crawl_terrain.obj, README "Terrain"),
+# and prints it. train and scaling add the terrain.sets of every REFERENCE that is a folder to
+# SETS, so `train OUT_DIR REFS_DIR` simulates the slope (the run records it, absolute, so report,
+# evaluate and play do too). The crawl alone:
 #   SETS="$(cat REFS_DIR/terrain.sets)" benchmarks/train_library.sh train out/crawl REFS_DIR/holosoma_crawl.npz
 # Single clips for (a) are then REFS_DIR/smplh_walk_jog_turn.npz and REFS_DIR/smplx_steps_deep_squat.npz.
 #
@@ -78,7 +79,8 @@ prepare() {
   local holosoma
   holosoma=$(cd "$data/references/holosoma" && pwd)
   ln -sf "$holosoma/motion_crawl_slope.npz" "$out/holosoma_crawl.npz"
-  echo "env.terrain.meshes.holosoma_crawl=$holosoma/terrain_slope.obj" > "$out/terrain.sets"
+  cp "$holosoma/terrain_slope.obj" "$out/holosoma_crawl_terrain.obj"
+  echo "env.terrain.meshes.holosoma_crawl=$out/holosoma_crawl_terrain.obj" > "$out/terrain.sets"
   local tmp
   tmp=$(mktemp -d)
   for kind in walk crawl; do
