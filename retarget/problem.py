@@ -29,6 +29,7 @@ from otr_gym.rotations import quat_slerp, quat_to_matrix
 from retarget.demonstration import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
 from retarget.evaluation.feet import least_moving_speed
 from retarget.geometry import Channel, GeometryConfig, GridStack, GroundChannel, SDFChannel
+from retarget.human_surface import HumanSurface
 from retarget.kinematics import NUM_LINKS, RobotKinematics, link_pairs_beyond
 from retarget.margins import ErrorMargin, cached_margin
 from retarget.meshes import as_trimesh, object_mesh
@@ -214,6 +215,11 @@ class Problem:
     #: (L,) contact unit of each link: links sharing human parts (``retarget.evaluation.units``),
     #: links without a part their own unit
     contact_units: np.ndarray
+    #: The human surface of the contact units (their parts' mesh vertices, part frames, × scale)
+    #: and the unit of each vertex: a unit's demonstrated gap is its whole surface's, as the
+    #: evaluation measures it, not only the OT sources' (``targets.unit_gaps``).
+    unit_surface: ProbeSet
+    unit_of_vertex: np.ndarray
 
     @property
     def num_frames(self) -> int:
@@ -380,8 +386,22 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                       style_cfg=style, solver=solver, band_m=geometry.band_m, surface_margin=surface_margin_m(),
                       feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, sweep=sweep, turns=turns, stance_cfg=stance,
                       self_pairs=link_pairs_beyond(kin.parents, 2), self_points=robot_self_points()[0], self_clusters=robot_self_points()[1],
-                      contact_units=contact_units())
+                      contact_units=contact_units(), **unit_surface(demo.surface, scale))
     return replace(problem, q_init=initial_configuration(problem))
+
+
+def unit_surface(surface: HumanSurface, scale: float) -> dict[str, np.ndarray | ProbeSet]:
+    """``Problem.unit_surface`` and ``unit_of_vertex``: the mesh vertices of every human part
+    that a contact unit stands for (part frames, × ``scale``); parts of no unit (fingers) are left out."""
+    from retarget.evaluation.units import default_units
+
+    unit_of_part = {part: u for u, unit in enumerate(default_units()) for part in unit.parts}
+    parts = [k for k, name in enumerate(surface.part_names) if name in unit_of_part]
+    points = np.concatenate([np.asarray(surface.vertices[k], np.float64) * scale for k in parts])
+    body = np.repeat(np.asarray(parts, np.intp), [len(surface.vertices[k]) for k in parts])
+    units = np.repeat(np.asarray([unit_of_part[surface.part_names[k]] for k in parts], np.intp),
+                      [len(surface.vertices[k]) for k in parts])
+    return {"unit_surface": ProbeSet(tuple(surface.part_names), points, body), "unit_of_vertex": units}
 
 
 @lru_cache(maxsize=1)

@@ -464,10 +464,12 @@ def _select_contact_rows(problem: Problem, targets: FrameTargets, pairs: list[_R
     for p in pairs:
         if len(p.probes) == 0:
             continue
-        # per unit (links sharing human parts), the smallest demonstrated gap of its links
-        hat_link = targets.robot_link_d[p.channel]
+        # per unit (links sharing human parts) the demonstrated gap of its parts' surface; links
+        # of no unit keep the smallest d̂ of their own probes
         hat = np.full(unit_of.max() + 1, np.inf)
-        np.minimum.at(hat, unit_of, hat_link)
+        np.minimum.at(hat, unit_of, targets.robot_link_d[p.channel])
+        gap = targets.unit_d[p.channel]
+        hat[:len(gap)] = gap
         unit = unit_of[problem.robot.body[p.probes]]
         order = np.lexsort((p.query.d, unit))  # per unit, closest first
         first = order[np.concatenate([[True], unit[order][1:] != unit[order][:-1]])]

@@ -233,3 +233,54 @@ def test_a_hand_that_holds_in_the_demonstration_is_pulled_in_from_beyond_the_gri
         assert rows.value[k] > 0.3  # far: |x − ŵ| less the demonstrated gap
         assert np.linalg.norm(rows.phi[k, :3]) > 0.99  # a unit pull, not the band's zero gradient
         assert rows.body_b[k] == FIXED and not rows.phi[k, 6:].any()  # the hand moves in, the box stays
+
+
+def test_a_units_demonstrated_gap_is_its_whole_surface_and_decides_whether_it_is_held():
+    """The contact-state rows judge a unit by the gap of its parts' whole surface, as the
+    evaluation scores it, not by the few OT sources of its probes: on OMOMO's table those
+    sources kept the person's forearm at 28 mm where its surface came within 19 mm, and the
+    G1's forearm was held off the table (object recall 87 %)."""
+    from dataclasses import replace
+
+    from retarget.evaluation.units import default_units
+    from retarget.meshes import as_trimesh, signed_distance
+    from retarget.rows import _ConstraintRows, _robot_channel, _select_contact_rows
+
+    problem = build_problem(resample_demonstration(clip("box_carry", 200, 203), 50.0))
+    c = next(k for k, tr in enumerate(problem.channels) if not tr.channel.is_ground)
+    track = problem.channels[c]
+    targets = frame_targets(problem, 1)
+    # the gap of every unit's surface, measured exactly on the mesh at the demonstrated pose
+    surface_w = problem.unit_surface.posed(problem.part_rot_w[1], problem.part_pos_w[1])
+    local = (surface_w - track.pos_w[1]) @ track.rot_w[1]
+    mesh = track.channel.mesh
+    exact = signed_distance(as_trimesh(mesh.vertices, mesh.faces, "box"), local)[0]
+    units = default_units()
+    gaps = targets.unit_d[c]
+    held = 0
+    for u, unit in enumerate(units):
+        mine = problem.unit_of_vertex == u
+        want = min(exact[mine].min(), problem.band_m) if mine.any() else problem.band_m
+        assert gaps[u] == pytest.approx(want, abs=1.5e-3), unit.name  # the grid's interpolation error
+        held += want < problem.interaction.hold_m
+    assert held >= 2  # both hands hold the box in these frames
+    # a unit whose sources are all far but whose surface touches is to be pulled in to its gap
+    state = new_state(problem)
+    fr = problem.kin.frames(state.data, state.q)
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    pairs, _ = _robot_channel(problem, state, targets, fr, centre_w, c, _ConstraintRows([], []))
+    hand = robot.body_indices(["left_wrist_yaw_link"])[0]
+    u = problem.contact_units[hand]
+    far_sources = [ld.copy() for ld in targets.robot_link_d]
+    far_sources[c][problem.contact_units == u] = 0.05
+    unit_d = [g.copy() for g in targets.unit_d]
+    unit_d[c][u] = 0.004
+    sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)), [pairs])
+    mine = problem.contact_units[problem.robot.body[sel.probe]] == u
+    assert mine.sum() == 1 and sel.touching[mine].all() and sel.target[mine] == pytest.approx(0.004)
+    # and one whose surface stays 5 cm off is held out to the clearance, whatever its sources say
+    unit_d[c][u] = 0.05
+    far_sources[c][problem.contact_units == u] = 0.0
+    sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)), [pairs])
+    mine = problem.contact_units[problem.robot.body[sel.probe]] == u
+    assert not sel.touching[mine].any() and sel.target[mine] == pytest.approx(problem.interaction.clearance_m)

@@ -204,16 +204,20 @@ def test_the_box_rests_on_the_table_and_the_robot_never_touches_it(place, free_t
     if not free_table:
         # no robot–table contact once the cold start of this clip (cut mid-carry: 50 SQP
         # iterations from a default pose) has settled; measured: a hand 18.7 mm from the table
-        # on frames 0–2. (With the table free it slides ~6 cm towards the placed box and the
-        # left hand, still on the box, ends within 2 cm of the table top: a known limit.)
+        # on frames 0–2. (With the table free the cold start pushes it 7–8 cm towards the placed
+        # box and the left hand, still on the box, ends within 2 cm of the table top: a known limit.)
         assert not touching[5:].any()
     assert result.details["object_channels"]["box"]["recall"] >= 0.9
     from retarget.evaluation.report import format_object_notes
 
     notes = format_object_notes([result.as_dict()])  # what `otr eval` prints under its table
     assert "robot–table" in notes and f"box–table R {100 * pair['recall']:.0f} %" in notes
-    moved = np.linalg.norm(ref.objects[1].pos_w - place.objects[1].pos_w, axis=1).max()
-    assert moved <= (0.08 if free_table else 0.0)  # free: measured up to 6.3 cm towards the placed box
+    moved = np.linalg.norm(ref.objects[1].pos_w - place.objects[1].pos_w, axis=1)
+    # free: pushed off by the cold start (frames 0-2; measured 7.1 cm, 8.2 cm since the contact
+    # rows judge a unit by its whole surface: the robot then stays 18-29 mm off the table there
+    # where it came within 5 mm), then back in place (measured ≤ 0.5 cm)
+    assert moved[:3].max() <= (0.09 if free_table else 0.0)
+    assert moved[3:].max() <= (0.01 if free_table else 0.0)
 
 
 # ------------------------------------------------------------------ otr variants
