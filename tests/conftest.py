@@ -23,6 +23,17 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+@pytest.fixture(scope="session")
+def largebox_reference(shared_data, tmp_path_factory) -> Path:
+    """Our reference of OMOMO sub3_largebox_003 (native scale, box free), retargeted once per
+    session (~30 s on one core) by this commit's code."""
+    from retarget.demos import load_demonstration
+    from retarget.pipeline import RetargetConfig, retarget_demonstration
+
+    demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
+    return retarget_demonstration(demo, RetargetConfig()).save(tmp_path_factory.mktemp("refs") / "sub3_largebox_003.npz")
+
+
 # ------------------------------------------------------------------ generated G1 references
 @pytest.fixture(scope="session")
 def standing_reference(tmp_path_factory) -> Path:

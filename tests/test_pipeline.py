@@ -116,14 +116,15 @@ def test_omomo_clip_without_its_object_mesh_is_named(shared_data, tmp_path):
 
 
 @pytest.mark.slow
-def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(shared_data):
+def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(shared_data, largebox_reference):
     """OMOMO sub3_largebox_003, box free, native scale (the figures quoted in the report)."""
+    from otr_gym.reference import Reference
     from retarget.demos import load_demonstration
     from retarget.problem import resample_demonstration
     from retarget.verify import check_reference
 
     demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
-    ref = retarget_demonstration(demo, RetargetConfig())
+    ref = Reference.load(largebox_reference)
     checks = check_reference(ref, resample_demonstration(demo, ref.fps))
     print(dataclasses.asdict(checks), ref.metadata["solver"])
     assert ref.contacts.distance.min() >= -EPS_COL  # probes, every link and channel
