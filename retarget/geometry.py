@@ -38,6 +38,10 @@ import igl
 import numba
 import numpy as np
 import potpourri3d as pp3d
+from llvmlite import ir as llvm_ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -242,6 +246,52 @@ def _interpolate(x: np.ndarray, values: np.ndarray, origin: np.ndarray, inv_reso
     return val, jac, inside
 
 
+#: Points ahead whose grid cells a kernel asks the cache for while it interpolates the current
+#: one: grid lookups are scattered over tens of MB, and waiting for each cell in turn took most
+#: of their time (the loads of several points ahead overlap instead).
+PREFETCH_AHEAD = 8
+
+
+@intrinsic
+def _prefetch(typingctx, ary, index):
+    """Ask the cache for the element ``ary[index]`` (``index`` a tuple, one int per axis) without
+    waiting for it (LLVM's prefetch: read, keep in all cache levels); changes no value."""
+    sig = types.void(ary, index)
+
+    def codegen(context, builder, signature, args):
+        aryty, idxty = signature.args
+        array = context.make_array(aryty)(context, builder, args[0])
+        idx = [context.cast(builder, v, t, types.intp)
+               for v, t in zip(cgutils.unpack_tuple(builder, args[1], len(idxty)), idxty)]
+        ptr = cgutils.get_item_pointer(context, builder, aryty, array, idx, wraparound=False)
+        i32 = llvm_ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, llvm_ir.FunctionType(llvm_ir.VoidType(),
+                                                                                 [ptr.type, i32, i32, i32]),
+                                            "llvm.prefetch.p0")
+        builder.call(fn, [ptr, i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_cell(values, r, sx, sy):
+    """Prefetch the 8 corner rows of the cell whose lower node is row r of ``values`` (M, C):
+    four pairs of adjacent rows (z neighbours), each pair's first and last element."""
+    last = values.shape[1] - 1
+    for o in (0, sy, sx, sx + sy):
+        _prefetch(values, (r + o, 0))
+        _prefetch(values, (r + o + 1, last))
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_phi_cell(phi, r, sx, sy):
+    """``_prefetch_cell`` of a flat Φ table (M,)."""
+    for o in (0, sy, sx, sx + sy):
+        _prefetch(phi, (r + o,))
+        _prefetch(phi, (r + o + 1,))
+
+
 @numba.njit(cache=True)
 def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, offset, val, jac, inside):
     """Trilinear interpolant of node values (M, C) at points x (N, 3), point i in the frame of
@@ -250,24 +300,38 @@ def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, o
     and inside (N,). Points outside use the cell of their projection onto the grid box.
 
     Per channel, successive lerps along z, y, x; each level's difference is the partial along
-    that axis (corner rows: z pairs adjacent, then y, then x).
+    that axis (corner rows: z pairs adjacent, then y, then x). The cell of the point
+    ``PREFETCH_AHEAD`` further on is prefetched meanwhile.
     """
-    for i in range(x.shape[0]):
+    n = x.shape[0]
+    for i in range(n):
+        if i + PREFETCH_AHEAD < n:
+            r, _, _, _, _ = _cell_row(x, i + PREFETCH_AHEAD, grid, origin, inv_resolution, upper, strides, offset)
+            g = grid[i + PREFETCH_AHEAD]
+            _prefetch_cell(values, r, strides[g, 0], strides[g, 1])
         g = grid[i]
-        ix, fx, ok_x = _cell_axis(x[i, 0], origin[g, 0], inv_resolution[g], upper[g, 0])
-        iy, fy, ok_y = _cell_axis(x[i, 1], origin[g, 1], inv_resolution[g], upper[g, 1])
-        iz, fz, ok_z = _cell_axis(x[i, 2], origin[g, 2], inv_resolution[g], upper[g, 2])
-        ok = ok_x and ok_y and ok_z
+        r, fx, fy, fz, ok = _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset)
         inside[i] = ok
         scale = inv_resolution[g] * ok
         sx, sy = strides[g, 0], strides[g, 1]
-        r = offset[g] + ix * sx + iy * sy + iz * strides[g, 2]
         for k in range(values.shape[1]):
             v, gx, gy, gz = _trilinear_phi(values[:, k], r, sx, sy, fx, fy, fz)
             val[i, k] = v
             jac[i, k, 0] = gx * scale
             jac[i, k, 1] = gy * scale
             jac[i, k, 2] = gz * scale
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset):
+    """Point i's cell in its grid g = grid[i] (arguments as ``_trilinear_kernel``): the row of
+    its lower node, the position in the cell (fx, fy, fz) in [0, 1], and whether it lies
+    within the grid."""
+    g = grid[i]
+    ix, fx, ok_x = _cell_axis(x[i, 0], origin[g, 0], inv_resolution[g], upper[g, 0])
+    iy, fy, ok_y = _cell_axis(x[i, 1], origin[g, 1], inv_resolution[g], upper[g, 1])
+    iz, fz, ok_z = _cell_axis(x[i, 2], origin[g, 2], inv_resolution[g], upper[g, 2])
+    return offset[g] + ix * strides[g, 0] + iy * strides[g, 1] + iz * strides[g, 2], fx, fy, fz, ok_x and ok_y and ok_z
 
 
 @numba.njit(cache=True)
@@ -484,8 +548,14 @@ def _blend_weights(x, idx, points, inv_h2, a, da):
 
 @numba.njit(cache=True)
 def _blend_ratio(ratio, i_idx, a, da, j_idx, b, gamma, dgamma):
-    """γ = Σ_i a_i row_i and ∂γ/∂w = Σ_i ∂a_i row_i with row_i = Σ_j b_j ratio[i, j]."""
+    """γ = Σ_i a_i row_i and ∂γ/∂w = Σ_i ∂a_i row_i with row_i = Σ_j b_j ratio[i, j]. The
+    table (K × K, 16 MB at K = 2000) is read at scattered entries: those of the witness
+    ``PREFETCH_AHEAD`` further on are prefetched meanwhile."""
     for n in range(a.shape[0]):
+        if n + PREFETCH_AHEAD < a.shape[0]:
+            for i in range(a.shape[1]):
+                for j in range(b.shape[1]):
+                    _prefetch(ratio, (i_idx[n + PREFETCH_AHEAD, i], j_idx[n + PREFETCH_AHEAD, j]))
         g = 0.0
         d0 = d1 = d2 = 0.0
         for i in range(a.shape[1]):

@@ -21,7 +21,14 @@ import numba
 import numpy as np
 
 from otr_gym import robot
-from retarget.geometry import ProximityQuery, SDFChannel, _cell_inside, _trilinear_phi
+from retarget.geometry import (
+    PREFETCH_AHEAD,
+    ProximityQuery,
+    SDFChannel,
+    _cell_inside,
+    _prefetch_phi_cell,
+    _trilinear_phi,
+)
 from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import ProbeSet, _pose_in_frame, posed_in_frames, segment_argmin
@@ -764,31 +771,31 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
     close = pairs[gap < reach]
     if len(close) == 0:
         return Rows.empty()
-    ordered = np.concatenate([close, close[:, ::-1]])
+    ordered = np.ascontiguousarray(np.concatenate([close, close[:, ::-1]]), np.intp)
     clusters, grids, vg = problem.self_clusters, problem.link_grids, problem.self_points
-    # one pass over (pair, cluster, vertex) in that order; a cluster or vertex outside b's grid
-    # is dropped before its cell is read
-    first = clusters.offsets[clusters.body_offsets[ordered[:, 0]]]
-    bound = int(np.sum(clusters.offsets[clusters.body_offsets[ordered[:, 0] + 1]] - first))
+    grid = (grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset)
+    # first the clusters within reach, then their vertices: a cluster or vertex outside b's grid is
+    # dropped before its cell is read, and the outputs are sized by the vertices that can matter
+    first = clusters.body_offsets[ordered[:, 0]]
+    bound = int(np.sum(clusters.body_offsets[ordered[:, 0] + 1] - first))
+    pair, cluster = np.empty(bound, np.intp), np.empty(bound, np.intp)
+    n = _self_mesh_clusters(ordered, clusters.centre, clusters.radius, clusters.body_offsets, fr.rot, fr.pos,
+                            float(reach), *grid, pair, cluster)
+    pair, cluster = pair[:n], cluster[:n]
+    bound = int(np.sum(clusters.offsets[cluster + 1] - clusters.offsets[cluster]))
     link_a, link_b = np.empty(bound, np.intp), np.empty(bound, np.intp)
     value, phi = np.empty(bound), np.empty((bound, 12))
-    k = _self_mesh_points(np.ascontiguousarray(ordered, np.intp), clusters.centre, clusters.radius, clusters.offsets,
-                          clusters.body_offsets, vg.points, fr.rot, fr.pos, float(reach), grids.phi.ravel(),
-                          grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset,
+    k = _self_mesh_points(ordered, pair, cluster, clusters.offsets, vg.points, fr.rot, fr.pos, float(reach), *grid,
                           problem.surface_margin, link_a, link_b, value, phi)
     return Rows(value[:k], np.ones(k), phi[:k], link_a[:k], link_b[:k])
 
 
 @numba.njit(cache=True)
-def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, rot, pos, reach, phi, origin,
-                      inv_resolution, upper, strides, offset, surface_margin, out_a, out_b, out_value, out_phi):
-    """The rows of ``self_mesh_rows``: per ordered pair (a, b), each cluster of a whose centre
-    lies in b's grid with Φ − radius < reach, then each of its vertices x in b's grid with
-    Φ < reach, as the row Φ − m_a − m_b with the factors φ of ``twist_factors`` for the world
-    gradient R_b ∇Φ; returns the count. Point by point the arithmetic of ``posed_in_frames``,
-    ``GridStack.distance`` and ``twist_factors``, without their intermediate arrays, and a point
-    outside b's grid is dropped before any grid node is read. R_b ∇Φ is summed as numpy's einsum
-    sums it on our builds ((x + z) + y), so that references did not move by a bit."""
+def _self_mesh_clusters(ordered, centre, radius, body_offsets, rot, pos, reach, phi, origin, inv_resolution, upper,
+                        strides, offset, out_pair, out_cluster):
+    """The clusters of ``self_mesh_rows`` whose vertices are to be tested: per ordered pair
+    (a, b) (index p), each cluster c of a whose centre lies in b's grid with Φ − radius < reach,
+    as (p, c) in that order; returns their count."""
     k = 0
     for p in range(ordered.shape[0]):
         a, b = ordered[p, 0], ordered[p, 1]
@@ -796,25 +803,54 @@ def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, ro
         o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
         up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
         sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
-        for c in range(body_offsets[a], body_offsets[a + 1]):
+        end = body_offsets[a + 1]
+        for c in range(body_offsets[a], end):
+            if c + PREFETCH_AHEAD < end:
+                _prefetch_point_cell(centre, c + PREFETCH_AHEAD, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv, up0,
+                                     up1, up2, sx, sy, sz)
             inside, val, _, _, _, _, _, _ = _phi_in_grid(centre, c, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
                                                          up0, up1, up2, sx, sy, sz)
-            if not (inside and val - radius[c] < reach):
-                continue
-            for v in range(offsets[c], offsets[c + 1]):
-                inside, val, g0, g1, g2, w0, w1, w2 = _phi_in_grid(points, v, a, b, rot, pos, phi, offset[b], o0, o1,
-                                                                   o2, inv, up0, up1, up2, sx, sy, sz)
-                if not (inside and val < reach):
-                    continue
-                g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
-                a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
-                a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
-                a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
-                out_a[k], out_b[k] = a, b
-                out_value[k] = val - surface_margin[a] - surface_margin[b]
-                _twist_row(a0, a1, a2, w0, w1, w2, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
-                           out_phi, k)
+            if inside and val - radius[c] < reach:
+                out_pair[k], out_cluster[k] = p, c
                 k += 1
+    return k
+
+
+@numba.njit(cache=True)
+def _self_mesh_points(ordered, pair, cluster, offsets, points, rot, pos, reach, phi, origin, inv_resolution, upper,
+                      strides, offset, surface_margin, out_a, out_b, out_value, out_phi):
+    """The rows of ``self_mesh_rows``: for each (pair p = (a, b), cluster c of a) of
+    ``_self_mesh_clusters``, each vertex x of c in b's grid with Φ < reach, as the row
+    Φ − m_a − m_b with the factors φ of ``twist_factors`` for the world gradient R_b ∇Φ; returns
+    the count. Point by point the arithmetic of ``posed_in_frames``, ``GridStack.distance`` and
+    ``twist_factors``, without their intermediate arrays. R_b ∇Φ is summed as numpy's einsum
+    sums it on our builds ((x + z) + y), so that references did not move by a bit."""
+    k = 0
+    for q in range(pair.shape[0]):
+        a, b = ordered[pair[q], 0], ordered[pair[q], 1]
+        inv = inv_resolution[b]
+        o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
+        up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
+        sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
+        c = cluster[q]
+        end = offsets[c + 1]
+        for v in range(offsets[c], end):
+            if v + PREFETCH_AHEAD < end:
+                _prefetch_point_cell(points, v + PREFETCH_AHEAD, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
+                                     up0, up1, up2, sx, sy, sz)
+            inside, val, g0, g1, g2, w0, w1, w2 = _phi_in_grid(points, v, a, b, rot, pos, phi, offset[b], o0, o1,
+                                                               o2, inv, up0, up1, up2, sx, sy, sz)
+            if not (inside and val < reach):
+                continue
+            g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
+            a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+            a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+            a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+            out_a[k], out_b[k] = a, b
+            out_value[k] = val - surface_margin[a] - surface_margin[b]
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
+                       out_phi, k)
+            k += 1
     return k
 
 
@@ -832,6 +868,18 @@ def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1
     iz, fz = _cell_inside(u2, up2)
     val, g0, g1, g2 = _trilinear_phi(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
     return True, val, g0, g1, g2, w0, w1, w2
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_point_cell(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """Prefetch the cell of b's grid that ``_phi_in_grid`` will read for point v (same arguments)."""
+    _, _, _, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+    if 0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2:
+        ix, _ = _cell_inside(u0, up0)
+        iy, _ = _cell_inside(u1, up1)
+        iz, _ = _cell_inside(u2, up2)
+        _prefetch_phi_cell(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy)
 
 
 #: The root link (pelvis): its origin is the floating base's.
