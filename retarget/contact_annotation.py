@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from retarget.iterate import SolverState, channel_pose, frames_at
@@ -45,10 +46,25 @@ def frame_contacts(problem: Problem, state: SolverState, t: int) -> FrameContact
         # distances alone find each link's closest point; only those need a witness
         d = np.minimum(track.channel.distance(np.take(x_c, idx, axis=0))[0], band)
         owner = link[idx]
-        order = np.lexsort((d, owner))  # per link, closest first
-        first = order[np.concatenate([[True], owner[order][1:] != owner[order][:-1]])]
+        first = closest_per_owner(d, owner, NUM_LINKS)
         q = track.channel.query(np.take(x_c, idx[first], axis=0), normals=False)
         dist[owner[first], c] = np.minimum(q.d, band)
         wit[owner[first], c] = q.w
     return FrameContacts(dist, wit)
 
+
+
+def closest_per_owner(d: np.ndarray, owner: np.ndarray, n_owners: int) -> np.ndarray:
+    """Per owner present, in ascending owner order, the index of its smallest ``d`` (the first
+    of equal ones): the first entry per owner of ``np.lexsort((d, owner))``, without the sort."""
+    best = np.full(n_owners, -1, np.intp)
+    _closest_per_owner(np.asarray(d, np.float64), np.asarray(owner, np.intp), best)
+    return best[best >= 0]
+
+
+@numba.njit(cache=True)
+def _closest_per_owner(d, owner, best):
+    for i in range(d.shape[0]):
+        o = owner[i]
+        if best[o] < 0 or d[i] < d[best[o]]:
+            best[o] = i

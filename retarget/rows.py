@@ -37,6 +37,7 @@ from retarget.residuals import (
     FIXED,
     PairSet,
     Rows,
+    Triples,
     _to_channel_point,
     _to_world_direction,
     _twist_row,
@@ -255,6 +256,7 @@ class _RobotPairs:
     x_w: np.ndarray  # (k, 3)
     x_c: np.ndarray  # (k, 3)
     query: ProximityQuery
+    desired: Triples  # the demonstrated triples of ``probes``
 
 
 def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, fr: LinkFrames,
@@ -285,8 +287,9 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         # for the interaction and the contact-state rows alike. Without it the G1's pelvis and right knee stayed 19–22 cm
         # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
         x_a = np.take(x_c, a, axis=0)
+        desired = targets.robot[c].take(idx[a])
         pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), x_a,
-                            far_field(_take(q, active), x_a, targets.robot[c].take(idx[a]), track.is_ground))
+                            far_field(_take(q, active), x_a, desired, track.is_ground), desired)
         # Against the ground the hull vertices (guards) imply every area probe: skip those.
         if not track.is_ground:
             ib = np.flatnonzero(q.in_band & (q.d < check))
@@ -425,7 +428,7 @@ def _guards_within_into(offsets, links, anchor, anchor_d, probe_d, margin, out):
     return k
 
 
-def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: list[_RobotPairs],
+def _robot_cost(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
                 counts: np.ndarray | None) -> tuple[list[Rows], int, np.ndarray]:
     """Interaction rows of the robot probes (eq. m-energy), f_ℓ/N_ℓ with N_ℓ the distinct active
     probes of link ℓ over all channels (or ``counts``). Returns rows, pair count, N_ℓ as counted."""
@@ -440,7 +443,7 @@ def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: 
         track = problem.channels[p.channel]
         body = problem.robot.body[p.probes]
         ps = PairSet(p.x_w, p.x_c, np.take(fr.pos, body, axis=0), body, track.body, p.rot_c, p.pos_c, p.query,
-                     targets.robot[p.channel].take(p.probes), norm_link[body])
+                     p.desired, norm_link[body])
         cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
     return cost, sum(len(p.probes) for p in pairs), link_counts
 
@@ -600,7 +603,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
             robot_pairs.append(pairs)
     tm.lap("robot_channels")
 
-    cost, total_pairs, link_counts = _robot_cost(problem, targets, fr, robot_pairs, counts)
+    cost, total_pairs, link_counts = _robot_cost(problem, fr, robot_pairs, counts)
     if contact is None:
         contact = _select_contact_rows(problem, targets, robot_pairs)
     cost += _contact_state_rows(problem, fr, robot_pairs, contact)
