@@ -324,13 +324,18 @@ def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, o
 
 @numba.njit(cache=True, inline="always")
 def _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset):
-    """Point i's cell in its grid g = grid[i] (arguments as ``_trilinear_kernel``): the row of
-    its lower node, the position in the cell (fx, fy, fz) in [0, 1], and whether it lies
-    within the grid."""
-    g = grid[i]
-    ix, fx, ok_x = _cell_axis(x[i, 0], origin[g, 0], inv_resolution[g], upper[g, 0])
-    iy, fy, ok_y = _cell_axis(x[i, 1], origin[g, 1], inv_resolution[g], upper[g, 1])
-    iz, fz, ok_z = _cell_axis(x[i, 2], origin[g, 2], inv_resolution[g], upper[g, 2])
+    """Point i's cell in its grid grid[i] (arguments as ``_trilinear_kernel``): see ``_cell_of``."""
+    return _cell_of(x[i, 0], x[i, 1], x[i, 2], grid[i], origin, inv_resolution, upper, strides, offset)
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_of(x0, x1, x2, g, origin, inv_resolution, upper, strides, offset):
+    """The cell of point x in grid g (tables as ``_trilinear_kernel``'s): the row of its lower
+    node, the position in the cell (fx, fy, fz) in [0, 1], and whether x lies within the grid
+    (outside, the cell of its projection)."""
+    ix, fx, ok_x = _cell_axis(x0, origin[g, 0], inv_resolution[g], upper[g, 0])
+    iy, fy, ok_y = _cell_axis(x1, origin[g, 1], inv_resolution[g], upper[g, 1])
+    iz, fz, ok_z = _cell_axis(x2, origin[g, 2], inv_resolution[g], upper[g, 2])
     return offset[g] + ix * strides[g, 0] + iy * strides[g, 1] + iz * strides[g, 2], fx, fy, fz, ok_x and ok_y and ok_z
 
 
@@ -387,6 +392,11 @@ class GridStack:
         sizes = np.array([0 if g is None else len(g.values) for g in grids])
         self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
         self.phi = (np.concatenate([g._phi for g in present]) if present else np.zeros(0))[:, None]
+        #: (G, 3) centre of each grid's box (grid frame) and (G,) its half diagonal (inf when missing)
+        self.box_centre = self.origin + 0.5 * self.upper * np.array([0.0 if g is None else g.resolution
+                                                                      for g in grids])[:, None]
+        self.box_radius = np.array([np.inf if g is None else 0.5 * g.resolution * np.linalg.norm(g._upper)
+                                    for g in grids])
 
     def distance(self, x: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Φ (N,), its gradient (N, 3) and the inside mask (N,) of points x (N, 3), each in the

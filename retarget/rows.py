@@ -26,12 +26,13 @@ from retarget.geometry import (
     ProximityQuery,
     SDFChannel,
     _cell_inside,
+    _cell_of,
     _prefetch_phi_cell,
     _trilinear_phi,
 )
 from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS, LinkFrames
-from retarget.probes import ProbeSet, _pose_in_frame, posed_in_frames, segment_argmin
+from retarget.probes import ProbeSet, _in_frame, _pose_in_frame, _posed_point
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
     FIXED,
@@ -682,12 +683,59 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, li
     pair_link, guard = _spheres_reach(np.ascontiguousarray(centre_w[links]), problem.link_radius[links], g_w, reach)
     if len(guard) == 0:
         return Rows.empty()
-    link = links[pair_link]
-    x = g_w[guard]
-    local = np.einsum("kji,kj->ki", fr.rot[link], x - fr.pos[link])  # Rᵀ(x − o)
-    d, grad, inside = problem.link_grids.distance(local, link)
-    keep = np.flatnonzero(inside & (d < reach))
-    return _object_link_rows(problem, fr, track, pos_c, link[keep], x[keep], d[keep], grad[keep])
+    grids = problem.link_grids
+    value, phi, link = np.empty(len(guard)), np.empty((len(guard), 12)), np.empty(len(guard), np.intp)
+    k = _object_guard_rows_into(links[pair_link], guard, g_w, fr.rot, fr.pos, grids.phi.ravel(), grids.origin,
+                                grids.inv_resolution, grids.upper, grids.strides, grids.offset, float(reach),
+                                problem.surface_margin, np.asarray(pos_c, np.float64), value, phi, link)
+    return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
+
+
+@numba.njit(cache=True)
+def _object_guard_rows_into(link, guard, g_w, rot, pos, phi, origin, inv_resolution, upper, strides, offset, reach,
+                            surface_margin, pos_c, out_value, out_phi, out_link):
+    """The rows of ``object_guard_rows`` (returns their count): guard point guard[q] (world
+    ``g_w``) in the frame of link[q], Rᵀ(x − o) summed as numpy's einsum sums it (left to right),
+    its distance in the link's grid, and the row where it lies inside closer than ``reach``."""
+    k = 0
+    for q in range(guard.shape[0]):
+        if q + PREFETCH_AHEAD < guard.shape[0]:
+            g = guard[q + PREFETCH_AHEAD]
+            _prefetch_link_cell(g_w[g, 0], g_w[g, 1], g_w[g, 2], link[q + PREFETCH_AHEAD], rot, pos, phi, origin,
+                                inv_resolution, upper, strides, offset)
+        b, g = link[q], guard[q]
+        val, g0, g1, g2, inside = _link_grid_distance(g_w[g, 0], g_w[g, 1], g_w[g, 2], b, rot, pos, phi, origin,
+                                                      inv_resolution, upper, strides, offset)
+        if inside and val < reach:
+            _object_link_row(val, g0, g1, g2, g_w[g, 0], g_w[g, 1], g_w[g, 2], b, rot, pos, pos_c, surface_margin,
+                             out_value, out_phi, out_link, k)
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, inline="always")
+def _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
+    """A world point in link b's frame (``_in_frame``) and ``GridStack.distance`` there: Φ, its gradient (zero outside the grid) and whether it lies
+    inside (outside, Φ of the cell of its projection, as the array form)."""
+    x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
+    r, fx, fy, fz, inside = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
+    val, g0, g1, g2 = _trilinear_phi(phi, r, strides[b, 0], strides[b, 1], fx, fy, fz)
+    scale = inv_resolution[b] * inside
+    return val, g0 * scale, g1 * scale, g2 * scale, inside
+
+
+@numba.njit(cache=True, inline="always")
+def _object_link_row(val, g0, g1, g2, w0, w1, w2, b, rot, pos, pos_c, surface_margin, out_value, out_phi, out_link,
+                     k):
+    """Row k: Φ − m_b ≥ 0 of an object point (world w) at link b's distance Φ with gradient g
+    (link frame): body A the object (origin ``pos_c``), body B the link; R_b g summed as numpy's
+    einsum sums three contiguous terms ((x + z) + y)."""
+    a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+    a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+    a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+    out_value[k] = val - surface_margin[b]
+    out_link[k] = b
+    _twist_row(a0, a1, a2, w0, w1, w2, pos_c[0], pos_c[1], pos_c[2], pos[b, 0], pos[b, 1], pos[b, 2], out_phi, k)
 
 
 def _spheres_reach(centre: np.ndarray, radius: np.ndarray, x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -710,15 +758,6 @@ def _spheres_reach_into(centre, radius, x, reach, out_s, out_p):
     return k
 
 
-def _object_link_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, pos_c: np.ndarray, link: np.ndarray,
-                      x: np.ndarray, d: np.ndarray, grad: np.ndarray) -> Rows:
-    """Rows d − m_link ≥ 0 of object points ``x`` (k, 3, world) at grid distances ``d`` (k,) with
-    gradients ``grad`` (k, 3, link frame) from ``link`` (k,): body A the object, body B the link."""
-    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad)  # ∇d in the world
-    phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
-    return Rows(d - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
-
-
 def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
                         track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
     """The deepest of each cluster of the object's surface points (``ChannelTrack.surface_guards``)
@@ -737,25 +776,70 @@ def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, 
     pair, pair_cl = sg.clusters_near((centre_w[links] - pos_c) @ rot_c, problem.link_radius[links] + reach)
     if len(pair_cl) == 0:
         return Rows.empty()
-    # the object as one more body after the links, so that one pass poses points into link frames
-    rot = np.concatenate([fr.rot, rot_c[None]])
-    pos = np.concatenate([fr.pos, pos_c[None]])
-    obj = len(fr.rot)
-    link = links[pair]
-    _, c_l = posed_in_frames(cl.centre[pair_cl], np.full(len(pair_cl), obj, np.intp), link, rot, pos)
-    d, _, inside = grids.distance(c_l, link)
-    near = np.flatnonzero(inside & (d - cl.radius[pair_cl] < reach))
-    if len(near) == 0:
-        return Rows.empty()
-    link, pair_cl = link[near], pair_cl[near]
-    idx = cl.points_of(pair_cl)
-    count = cl.offsets[pair_cl + 1] - cl.offsets[pair_cl]
-    point_link = np.repeat(link, count)
-    x, local = posed_in_frames(sg.points[idx], np.full(len(idx), obj, np.intp), point_link, rot, pos)
-    d, grad, inside = grids.distance(local, point_link)
-    deepest = segment_argmin(np.where(inside, d, np.inf), count)
-    deepest = deepest[d[deepest] < reach]
-    return _object_link_rows(problem, fr, track, pos_c, point_link[deepest], x[deepest], d[deepest], grad[deepest])
+    grids = problem.link_grids
+    n = len(pair_cl)
+    value, phi, link = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp)
+    k = _object_surface_rows_into(links[pair], pair_cl, cl.centre, cl.radius, cl.offsets, sg.points,
+                                  np.ascontiguousarray(rot_c, np.float64), np.asarray(pos_c, np.float64), fr.rot,
+                                  fr.pos, grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper,
+                                  grids.strides, grids.offset, float(reach), problem.surface_margin, value, phi, link)
+    return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
+
+
+@numba.njit(cache=True)
+def _object_surface_rows_into(link, cluster, centre, radius, offsets, points, rot_c, pos_c, rot, pos, phi, origin,
+                              inv_resolution, upper, strides, offset, reach, surface_margin, out_value, out_phi,
+                              out_link):
+    """The rows of ``object_surface_rows`` (returns their count): per (link, cluster) pair, the
+    cluster's centre in the link's grid with Φ − radius < reach, then its deepest point (the
+    first smallest Φ among the points inside the grid) if closer than ``reach``. Points are
+    posed as ``posed_in_frames`` poses them (the object a body at (``rot_c``, ``pos_c``))."""
+    k = 0
+    for q in range(cluster.shape[0]):
+        if q + PREFETCH_AHEAD < cluster.shape[0]:
+            p0, p1, p2 = _object_point(centre, cluster[q + PREFETCH_AHEAD], rot_c, pos_c)
+            _prefetch_link_cell(p0, p1, p2, link[q + PREFETCH_AHEAD], rot, pos, phi, origin, inv_resolution, upper,
+                                strides, offset)
+        b, c = link[q], cluster[q]
+        w0, w1, w2 = _object_point(centre, c, rot_c, pos_c)
+        val, _, _, _, inside = _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper,
+                                                   strides, offset)
+        if not (inside and val - radius[c] < reach):
+            continue
+        best_key = np.inf
+        start, end = offsets[c], offsets[c + 1]
+        for v in range(start, end):
+            if v + PREFETCH_AHEAD < end:
+                p0, p1, p2 = _object_point(points, v + PREFETCH_AHEAD, rot_c, pos_c)
+                _prefetch_link_cell(p0, p1, p2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset)
+            p0, p1, p2 = _object_point(points, v, rot_c, pos_c)
+            d, g0, g1, g2, inside = _link_grid_distance(p0, p1, p2, b, rot, pos, phi, origin, inv_resolution, upper,
+                                                        strides, offset)
+            key = d if inside else np.inf
+            if v == start or key < best_key:
+                best_key, best = key, (d, g0, g1, g2, p0, p1, p2)
+        d, g0, g1, g2, p0, p1, p2 = best
+        if d < reach:
+            _object_link_row(d, g0, g1, g2, p0, p1, p2, b, rot, pos, pos_c, surface_margin, out_value, out_phi,
+                             out_link, k)
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, inline="always")
+def _object_point(points, i, rot_c, pos_c):
+    """Object-frame point i in the world, as ``posed_in_frames`` poses it."""
+    return (rot_c[0, 0] * points[i, 0] + rot_c[0, 1] * points[i, 1] + rot_c[0, 2] * points[i, 2] + pos_c[0],
+            rot_c[1, 0] * points[i, 0] + rot_c[1, 1] * points[i, 1] + rot_c[1, 2] * points[i, 2] + pos_c[1],
+            rot_c[2, 0] * points[i, 0] + rot_c[2, 1] * points[i, 1] + rot_c[2, 2] * points[i, 2] + pos_c[2])
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_link_cell(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
+    """Prefetch the cell of link b's grid that ``_link_grid_distance`` will read for world point w."""
+    x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
+    r, _, _, _, _ = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
+    _prefetch_phi_cell(phi, r, strides[b, 0], strides[b, 1])
 
 
 def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach: float) -> Rows:
@@ -783,7 +867,7 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
     bound = int(np.sum(clusters.body_offsets[ordered[:, 0] + 1] - first))
     pair, cluster = np.empty(bound, np.intp), np.empty(bound, np.intp)
     n = _self_mesh_clusters(ordered, clusters.centre, clusters.radius, clusters.body_offsets, fr.rot, fr.pos,
-                            float(reach), *grid, pair, cluster)
+                            float(reach), *grid, grids.box_centre, grids.box_radius, pair, cluster)
     pair, cluster = pair[:n], cluster[:n]
     bound = int(np.sum(clusters.offsets[cluster + 1] - clusters.offsets[cluster]))
     link_a, link_b = np.empty(bound, np.intp), np.empty(bound, np.intp)
@@ -795,24 +879,34 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
 
 @numba.njit(cache=True)
 def _self_mesh_clusters(ordered, centre, radius, body_offsets, rot, pos, reach, phi, origin, inv_resolution, upper,
-                        strides, offset, out_pair, out_cluster):
+                        strides, offset, box_centre, box_radius, out_pair, out_cluster):
     """The clusters of ``self_mesh_rows`` whose vertices are to be tested: per ordered pair
     (a, b) (index p), each cluster c of a whose centre lies in b's grid with Φ − radius < reach,
-    as (p, c) in that order; returns their count."""
+    as (p, c) in that order; returns their count. Each link's cluster centres are posed in the
+    world once; a centre farther from b's grid box centre than its half diagonal (``box_centre``,
+    ``box_radius``, grid frame), plus a micrometre for rounding, lies outside b's grid: it is
+    dropped without being posed into b's frame."""
+    world = np.empty((centre.shape[0], 3))
+    posed = np.zeros(body_offsets.shape[0] - 1, np.bool_)
     k = 0
     for p in range(ordered.shape[0]):
         a, b = ordered[p, 0], ordered[p, 1]
+        if not posed[a]:
+            for c in range(body_offsets[a], body_offsets[a + 1]):
+                world[c, 0], world[c, 1], world[c, 2] = _posed_point(centre, c, a, rot, pos)
+            posed[a] = True
+        g0, g1, g2 = _posed_point(box_centre, b, b, rot, pos)
+        reach_sq = (box_radius[b] + 1e-6) ** 2
         inv = inv_resolution[b]
         o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
         up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
         sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
-        end = body_offsets[a + 1]
-        for c in range(body_offsets[a], end):
-            if c + PREFETCH_AHEAD < end:
-                _prefetch_point_cell(centre, c + PREFETCH_AHEAD, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv, up0,
-                                     up1, up2, sx, sy, sz)
-            inside, val, _, _, _, _, _, _ = _phi_in_grid(centre, c, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
-                                                         up0, up1, up2, sx, sy, sz)
+        for c in range(body_offsets[a], body_offsets[a + 1]):
+            e0, e1, e2 = world[c, 0] - g0, world[c, 1] - g1, world[c, 2] - g2
+            if e0 * e0 + e1 * e1 + e2 * e2 > reach_sq:
+                continue
+            x0, x1, x2 = _in_frame(world[c, 0], world[c, 1], world[c, 2], b, rot, pos)
+            inside, val, _, _, _ = _phi_at(x0, x1, x2, phi, offset[b], o0, o1, o2, inv, up0, up1, up2, sx, sy, sz)
             if inside and val - radius[c] < reach:
                 out_pair[k], out_cluster[k] = p, c
                 k += 1
@@ -863,14 +957,22 @@ def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1
     strides s, first row row0): whether it lies inside, then Φ and its partials per cell width
     (unread when outside) and its world position."""
     w0, w1, w2, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    inside, val, g0, g1, g2 = _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz)
+    return inside, val, g0, g1, g2, w0, w1, w2
+
+
+@numba.njit(cache=True, inline="always")
+def _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """A point x in a grid's frame (grid as ``_phi_in_grid``): whether it lies inside, then Φ and
+    its partials per cell width (unread when outside)."""
     u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
     if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
-        return False, 0.0, 0.0, 0.0, 0.0, w0, w1, w2
+        return False, 0.0, 0.0, 0.0, 0.0
     ix, fx = _cell_inside(u0, up0)
     iy, fy = _cell_inside(u1, up1)
     iz, fz = _cell_inside(u2, up2)
     val, g0, g1, g2 = _trilinear_phi(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
-    return True, val, g0, g1, g2, w0, w1, w2
+    return True, val, g0, g1, g2
 
 
 @numba.njit(cache=True, inline="always")
