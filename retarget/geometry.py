@@ -199,11 +199,6 @@ class VoxelGrid:
         """(nx·ny·nz, 3) node positions in row order (m)."""
         return node_positions(self.origin, self.resolution, self.shape)
 
-    def nearest_node(self, x: np.ndarray) -> np.ndarray:
-        """(N,) row of the node nearest to each point (clipped to the grid)."""
-        i = np.clip(np.rint((x - self.origin) * (1.0 / self.resolution)), 0.0, self._upper)
-        return i.astype(np.intp) @ self._strides
-
     def _cells(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Lower-corner node index (N, 3) of each point's cell, position in the cell (N, 3) in
         [0, 1], inside-grid mask (N,). Outside points use the cell of their projection."""
@@ -500,9 +495,11 @@ class SurfaceGeodesics:
         """Neighbour indices (N, k) and normalised weights (N, k) of points x (N, 3), and with
         ``derivative`` ∂weights/∂x (N, k, 3)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
-        idx = np.take(self.neighbour_table, self.grid.nearest_node(x), axis=0)
+        table, grid = self.neighbour_table, self.grid
+        idx = np.empty((len(x), table.shape[1]), table.dtype)
         a = np.empty(idx.shape)
         da = np.empty(idx.shape + (3,)) if derivative else np.empty((0, 0, 3))
+        _neighbours(x, table, grid.origin, 1.0 / grid.resolution, grid._upper, grid._strides, idx)
         _blend_weights(x, idx, self.points, 1.0 / self.spacing_m**2, a, da)
         return (idx, a, da) if derivative else (idx, a)
 
@@ -525,6 +522,27 @@ class SurfaceGeodesics:
         e = np.sqrt(np.einsum("nj,nj->n", chord, chord))
         unit = np.divide(chord, e[:, None], out=np.zeros_like(chord), where=e[:, None] > 0)
         return e * gamma, gamma[:, None] * unit + e[:, None] * dgamma
+
+
+@numba.njit(cache=True)
+def _neighbours(x, table, origin, inv_resolution, upper, strides, out):
+    """out[n] ← the neighbour-table row of the grid node nearest to x[n] (grid frame; see
+    ``_nearest_row``); the rows of ``PREFETCH_AHEAD`` points on are prefetched (the table is
+    scattered over 8 MB)."""
+    for n in range(x.shape[0]):
+        if n + PREFETCH_AHEAD < x.shape[0]:
+            _prefetch(table, (_nearest_row(x, n + PREFETCH_AHEAD, origin, inv_resolution, upper, strides), 0))
+        out[n] = table[_nearest_row(x, n, origin, inv_resolution, upper, strides)]
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest_row(x, n, origin, inv_resolution, upper, strides):
+    """The row of the grid node nearest to x[n] (its index per axis rounded half to even and
+    clipped to the grid, then the strides)."""
+    row = 0
+    for c in range(3):
+        row += int(min(max(np.rint((x[n, c] - origin[c]) * inv_resolution), 0.0), upper[c])) * strides[c]
+    return row
 
 
 @numba.njit(cache=True)

@@ -123,16 +123,32 @@ def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad
     close = np.flatnonzero(rows.value < margin)
     if len(close) == 0:
         return close
-    key = _group_keys(rows.phi, rows.body_a, channel, close)
-    order = np.argsort(key, kind="stable")
-    starts = np.flatnonzero(np.concatenate([[True], np.diff(key[order]) != 0]))
-    extreme = np.empty(len(close), dtype=bool)
-    _extreme_rows(rows.value, rows.phi, close[order], np.append(starts, len(close)), float(tilt_rad), _COS, _SIN,
-                  extreme)
-    return np.sort(close[order[extreme]])
+    chosen = np.zeros(len(rows), dtype=bool)
+    _choose_extreme_rows(rows.value, rows.phi, rows.body_a, np.asarray(channel, np.intp), close, float(tilt_rad), _COS,
+                         _SIN, chosen)
+    return np.flatnonzero(chosen)
 
 
 _COS, _SIN = np.cos(_ANGLES), np.sin(_ANGLES)
+
+
+@numba.njit(cache=True)
+def _choose_extreme_rows(value, phi, body, channel, close, tilt, cos, sin, chosen):
+    """chosen[r] ← row r of ``close`` is an extreme row of its group (``initial_constraints``):
+    the rows grouped by key in a stable sort (the order of numpy's stable argsort), then
+    ``_extreme_rows`` per group."""
+    key = _group_keys(phi, body, channel, close)
+    order = np.argsort(key, kind="mergesort")
+    starts = [0]
+    for i in range(1, order.shape[0]):
+        if key[order[i]] != key[order[i - 1]]:
+            starts.append(i)
+    starts.append(order.shape[0])
+    grouped = close[order]
+    extreme = np.empty(grouped.shape[0], np.bool_)
+    _extreme_rows(value, phi, grouped, np.array(starts), tilt, cos, sin, extreme)
+    for i in range(grouped.shape[0]):
+        chosen[grouped[i]] = extreme[i]
 
 
 @numba.njit(cache=True)
@@ -271,31 +287,28 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
     near_links = candidate_links(problem, track, centre_w, rot_c, pos_c)
     # area probes: near links, and links with a probe in contact range in the demonstration
     links = np.flatnonzero(near_links | targets.robot_links[c])
-    idx, x_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
     # distance of every area probe, or a lower bound (the band) where not queried
     probe_d = np.full(len(problem.robot), band)
     pairs = None
-    if len(idx):
-        x_c = to_channel_frame(x_w, rot_c, pos_c)
-        demo_active = targets.robot_active[c][idx]
-        sel = np.flatnonzero(near_channel(track, x_c, band) | demo_active)
-        q = track.channel.query(np.take(x_c, sel, axis=0), normals=False)
-        probe_d[idx[sel]] = q.d
-        active = np.flatnonzero(q.in_band | demo_active[sel])
-        a = sel[active]
+    probes = _probes_near(problem.robot, links, fr, track, rot_c, pos_c, band, targets.robot_active[c])
+    if probes is not None:
+        sel, x_w, x_c = probes
+        q = track.channel.query(x_c, normals=False)
+        probe_d[sel] = q.d
+        active = np.flatnonzero(q.in_band | targets.robot_active[c][sel])
         # Beyond the grid's band a pair active in the demonstration reads d = band with no
         # gradient: the distance to its demonstrated witness pulls it in instead (``far_field``),
         # for the interaction and the contact-state rows alike. Without it the G1's pelvis and right knee stayed 19–22 cm
         # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
-        x_a = np.take(x_c, a, axis=0)
-        desired = targets.robot[c].take(idx[a])
-        pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), x_a,
+        x_a = np.take(x_c, active, axis=0)
+        desired = targets.robot[c].take(sel[active])
+        pairs = _RobotPairs(c, rot_c, pos_c, sel[active], np.take(x_w, active, axis=0), x_a,
                             far_field(_take(q, active), x_a, desired, track.is_ground), desired)
         # Against the ground the hull vertices (guards) imply every area probe: skip those.
         if not track.is_ground:
             ib = np.flatnonzero(q.in_band & (q.d < check))
-            pts, body = sel[ib], problem.robot.body[idx[sel[ib]]]
-            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, pts, axis=0), np.take(x_c, pts, axis=0), body,
+            body = problem.robot.body[sel[ib]]
+            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, ib, axis=0), np.take(x_c, ib, axis=0), body,
                                     np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0),
                                     np.take(problem.surface_margin, body)), c)
     link_min = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
@@ -313,6 +326,42 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
     if len(gi):
         con.add(_guard_rows(problem, fr, track, rot_c, pos_c, guards, gi, check), c)
     return pairs, link_min
+
+
+def _probes_near(probes: ProbeSet, links: np.ndarray, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray,
+                 pos_c: np.ndarray, reach: float,
+                 demo_active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The probes of ``links`` (sorted) within the channel's bounds grown by ``reach``, or active
+    in the demonstration (``demo_active`` (P,)): their indices, world and channel-frame positions,
+    in order, by one numba pass with the arithmetic of ``ProbeSet.posed_bodies``,
+    ``to_channel_frame`` and ``near_channel``. None when the links carry no probe."""
+    n = int(np.sum(probes.offsets[links + 1] - probes.offsets[links]))
+    if n == 0:
+        return None
+    index, x_w, x_c = np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
+    k = _probes_near_into(probes.points, probes.offsets, np.asarray(links, np.intp), fr.rot, fr.pos,
+                          np.ascontiguousarray(rot_c, np.float64), np.asarray(pos_c, np.float64), track.is_ground,
+                          np.asarray(track.lower - reach, np.float64), np.asarray(track.upper + reach, np.float64),
+                          float(reach), demo_active, index, x_w, x_c)
+    return index[:k], x_w[:k], x_c[:k]
+
+
+@numba.njit(cache=True)
+def _probes_near_into(points, offsets, links, rot, pos, rot_c, pos_c, ground, lower, upper, reach, demo_active,
+                      out_index, out_w, out_c):
+    k = 0
+    for link in links:
+        for p in range(offsets[link], offsets[link + 1]):
+            w0, w1, w2 = _posed_point(points, p, link, rot, pos)
+            x0, x1, x2 = _to_channel_point(w0, w1, w2, rot_c, pos_c)
+            near = (x2 < reach if ground else (lower[0] < x0 < upper[0] and lower[1] < x1 < upper[1]
+                                               and lower[2] < x2 < upper[2]))
+            if near or demo_active[p]:
+                out_index[k] = p
+                out_w[k, 0], out_w[k, 1], out_w[k, 2] = w0, w1, w2
+                out_c[k, 0], out_c[k, 1], out_c[k, 2] = x0, x1, x2
+                k += 1
+    return k
 
 
 def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray,
