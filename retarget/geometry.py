@@ -713,9 +713,7 @@ class SDFChannel:
         """
         x = _check_points(self.name, x_c)
         val, jac, inside = self.grid.interpolate(x)
-        in_band = inside & (val[:, 0] < self.band_m)
-        d = np.where(in_band, val[:, 0], self.band_m)
-        jac *= in_band[:, None, None]
+        d, in_band = _into_band(val[:, 0], jac.reshape(len(x), jac.shape[1] * 3), inside, self.band_m)
         w = val[:, 1:]
         dw_dx = jac[:, 1:]
         # Only penetrating probes and blends that stretch more than a closest-point map does on
@@ -758,9 +756,9 @@ class SDFChannel:
         """(d, ∂d/∂x, in_band) of :meth:`query` alone, for points that need no witness
         (non-penetration constraints): (N,), (N, 3), (N,) bool, channel frame."""
         x = _check_points(self.name, x_c)
-        d, grad, inside = self.grid.interpolate_distance(x)
-        in_band = inside & (d < self.band_m)
-        return np.where(in_band, d, self.band_m), grad * in_band[:, None], in_band
+        val, grad, inside = self.grid.interpolate_distance(x)
+        d, in_band = _into_band(val, grad, inside, self.band_m)
+        return d, grad, in_band
 
     def _closest_points(self, x: np.ndarray) -> np.ndarray:
         """Exact closest surface points (M, 3); the AABB tree is built on first use (it cannot be pickled)."""
@@ -788,6 +786,25 @@ class SDFChannel:
     def geodesic_weights(self, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The geodesic table's neighbours (N, k) and blending weights (N, k) of witnesses ŵ."""
         return self.geodesics.weights(w_hat)
+
+
+def _into_band(val: np.ndarray, jac: np.ndarray, inside: np.ndarray, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolated distances ``val`` (N,) as a query answers them: d = val inside the grid and
+    below the band, else the band (N,), and that mask (N,); the rows of their Jacobian ``jac``
+    (N, ·) are zeroed in place outside it (multiplied by 0.0, as by the mask)."""
+    d, in_band = np.empty(len(val)), np.empty(len(val), dtype=bool)
+    _into_band_kernel(val, jac, inside, float(band), d, in_band)
+    return d, in_band
+
+
+@numba.njit(cache=True)
+def _into_band_kernel(val, jac, inside, band, d, in_band):
+    for i in range(val.shape[0]):
+        in_band[i] = inside[i] and val[i] < band
+        d[i] = val[i] if in_band[i] else band
+        scale = 1.0 if in_band[i] else 0.0
+        for j in range(jac.shape[1]):
+            jac[i, j] *= scale
 
 
 class GroundChannel:

@@ -306,26 +306,48 @@ class PairSet:
     norm: np.ndarray  # (k,)
 
 
-def far_field(q: ProximityQuery, x_c: np.ndarray, desired: Triples, is_ground: bool) -> ProximityQuery:
-    """Replace out-of-band answers of an SDF channel by the demonstrated witness as attractor.
+def far_field(q: ProximityQuery, index: np.ndarray, x_c: np.ndarray, desired: Triples,
+              is_ground: bool) -> ProximityQuery:
+    """The answers of ``index`` (k,) of ``q``, those out of band replaced, for an SDF channel, by
+    the demonstrated witness as attractor; ``x_c`` (k, 3) and ``desired`` are the selected pairs'.
 
     A pair active in the demonstration but farther than the grid reaches has no gradient; the
-    distance to ŵ (an upper bound of d, exact as the probe approaches ŵ) pulls it back in.
+    distance to ŵ (an upper bound of d, exact as the probe approaches ŵ) pulls it back in. One
+    numba pass (|x − ŵ|² summed as numpy's einsum sums three terms, (x + z) + y).
     """
-    out = np.flatnonzero(~q.in_band)
-    if is_ground or len(out) == 0:
-        return q
-    w_hat = np.take(desired.w, out, axis=0)
-    diff = np.take(x_c, out, axis=0) - w_hat
-    dist = np.sqrt(np.einsum("kj,kj->k", diff, diff))
-    unit = diff / np.maximum(dist, 1e-12)[:, None]
-    d, w, grad, dw = q.d.copy(), q.w.copy(), q.grad_d.copy(), q.dw_dx.copy()
-    d[out], w[out], grad[out], dw[out] = dist, w_hat, unit, 0.0
-    n = None
-    if q.n is not None:
-        n = q.n.copy()
-        n[out] = unit
-    return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw, in_band=q.in_band)
+    k = len(index)
+    d, w, grad, dw, in_band = np.empty(k), np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 3, 3)), np.empty(k, bool)
+    n = np.empty((k if q.n is not None else 0, 3))
+    _far_field_into(q.d, q.w, q.grad_d, q.dw_dx, q.in_band, np.zeros((0, 3)) if q.n is None else q.n,
+                    np.asarray(index, np.intp), x_c, desired.w, is_ground, d, w, grad, dw, in_band, n)
+    return ProximityQuery(d=d, w=w, n=None if q.n is None else n, grad_d=grad, dw_dx=dw, in_band=in_band)
+
+
+@numba.njit(cache=True)
+def _far_field_into(d, w, grad_d, dw_dx, in_band, n, index, x_c, w_hat, ground, out_d, out_w, out_grad, out_dw,
+                    out_in_band, out_n):
+    for k in range(index.shape[0]):
+        i = index[k]
+        out_in_band[k] = in_band[i]
+        if in_band[i] or ground:
+            out_d[k] = d[i]
+            for a in range(3):
+                out_w[k, a], out_grad[k, a] = w[i, a], grad_d[i, a]
+                for b in range(3):
+                    out_dw[k, a, b] = dw_dx[i, a, b]
+                if out_n.shape[0]:
+                    out_n[k, a] = n[i, a]
+            continue
+        e0, e1, e2 = x_c[k, 0] - w_hat[k, 0], x_c[k, 1] - w_hat[k, 1], x_c[k, 2] - w_hat[k, 2]
+        dist = np.sqrt((e0 * e0 + e2 * e2) + e1 * e1)
+        scale = max(dist, 1e-12)
+        out_d[k] = dist
+        for a, e in ((0, e0), (1, e1), (2, e2)):
+            out_w[k, a], out_grad[k, a] = w_hat[k, a], e / scale
+            for b in range(3):
+                out_dw[k, a, b] = 0.0
+            if out_n.shape[0]:
+                out_n[k, a] = e / scale
 
 
 def witness_vector(channel: Channel, w: np.ndarray, w_hat: np.ndarray, dw_dx: np.ndarray,
@@ -472,6 +494,5 @@ def signed_distance_rows(d: np.ndarray, grad_c: np.ndarray, x_w: np.ndarray, ori
     """Rows d + ∇dᵀδ of k points (world ``x_w`` on bodies ``body_a`` with origins ``origin_a``)
     against the channel body ``body_b`` at pose (R_c, τ_c); d (k,) m and its gradient
     ``grad_c`` (k, 3) in the channel frame. ``d`` becomes the rows' value (not copied)."""
-    a_w = grad_c @ rot_c.T
-    return Rows(d, np.ones(len(d)), twist_factors(a_w, x_w, origin_a, None if body_b == FIXED else pos_c), body_a,
-                np.full(len(d), body_b, dtype=np.intp))
+    phi = channel_twist_factors(grad_c, np.arange(len(d)), rot_c, x_w, origin_a, None if body_b == FIXED else pos_c)
+    return Rows(d, np.ones(len(d)), phi, body_a, np.full(len(d), body_b, dtype=np.intp))

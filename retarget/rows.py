@@ -90,14 +90,6 @@ def candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray,
     return gap - problem.link_radius < problem.band_m
 
 
-def _take(q: ProximityQuery, index: np.ndarray) -> ProximityQuery:
-    """The answers of ``index`` (np.take: several times faster than fancy indexing of rows)."""
-    return ProximityQuery(d=np.take(q.d, index), w=np.take(q.w, index, axis=0),
-                          n=None if q.n is None else np.take(q.n, index, axis=0),
-                          grad_d=np.take(q.grad_d, index, axis=0), dw_dx=np.take(q.dw_dx, index, axis=0),
-                          in_band=np.take(q.in_band, index))
-
-
 def rows_take(rows: Rows, index: np.ndarray) -> Rows:
     return Rows(np.take(rows.value, index), np.take(rows.weight, index), np.take(rows.phi, index, axis=0),
                 np.take(rows.body_a, index), np.take(rows.body_b, index))
@@ -135,10 +127,9 @@ _COS, _SIN = np.cos(_ANGLES), np.sin(_ANGLES)
 @numba.njit(cache=True)
 def _choose_extreme_rows(value, phi, body, channel, close, tilt, cos, sin, chosen):
     """chosen[r] ← row r of ``close`` is an extreme row of its group (``initial_constraints``):
-    the rows grouped by key in a stable sort (the order of numpy's stable argsort), then
-    ``_extreme_rows`` per group."""
+    the rows grouped by key in a stable sort, then ``_extreme_rows`` per group."""
     key = _group_keys(phi, body, channel, close)
-    order = np.argsort(key, kind="mergesort")
+    order = _stable_order(key)
     starts = [0]
     for i in range(1, order.shape[0]):
         if key[order[i]] != key[order[i - 1]]:
@@ -152,6 +143,22 @@ def _choose_extreme_rows(value, phi, body, channel, close, tilt, cos, sin, chose
 
 
 @numba.njit(cache=True)
+def _stable_order(key):
+    """The permutation of numpy's stable argsort of small non-negative integer keys, by counting."""
+    lo = key.min()
+    start = np.zeros(key.max() - lo + 2, np.intp)
+    for k in key:
+        start[k - lo + 1] += 1
+    for i in range(1, start.shape[0]):
+        start[i] += start[i - 1]
+    order = np.empty(key.shape[0], np.intp)
+    for i in range(key.shape[0]):
+        order[start[key[i] - lo]] = i
+        start[key[i] - lo] += 1
+    return order
+
+
+@numba.njit(cache=True)
 def _group_keys(phi, body, channel, close):
     """(body · 64 + channel) · 32 + bin of each close row, the bin the argmax of a·(±e_x, ±e_y,
     ±e_z) (first on ties, as ``np.argmax(a @ _BINS.T)``, whose entries are exactly ±a_j)."""
@@ -159,9 +166,16 @@ def _group_keys(phi, body, channel, close):
     for m in range(close.shape[0]):
         r = close[m]
         best, top = 0, phi[r, 0]
-        for j, v in ((1, phi[r, 1]), (2, phi[r, 2]), (3, -phi[r, 0]), (4, -phi[r, 1]), (5, -phi[r, 2])):
-            if v > top:
-                best, top = j, v
+        if phi[r, 1] > top:
+            best, top = 1, phi[r, 1]
+        if phi[r, 2] > top:
+            best, top = 2, phi[r, 2]
+        if -phi[r, 0] > top:
+            best, top = 3, -phi[r, 0]
+        if -phi[r, 1] > top:
+            best, top = 4, -phi[r, 1]
+        if -phi[r, 2] > top:
+            best = 5
         out[m] = (body[r] * 64 + channel[r]) * 32 + best
     return out
 
@@ -200,6 +214,7 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
     unit tangents, the 8 tilts ω (|ω| = ``tilt``) and the rows whose d + ω·φ[3:6], or d, is
     the group's smallest; ``out`` marks them. The arithmetic of the array form, sums in its
     order (reduceat's pairwise sums, the einsum's (x + z) + y)."""
+    tilt_w, best = np.empty((8, 3)), np.empty(9)  # a group's tilts ω / tilt, its smallest scores
     for g in range(bounds.shape[0] - 1):
         lo, hi = bounds[g], bounds[g + 1]
         # np.add.reduceat: the first row, plus numpy's pairwise sum of the others
@@ -220,13 +235,17 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
         n = max(np.sqrt(t10 * t10 + t11 * t11 + t12 * t12), 1e-12)
         t10, t11, t12 = t10 / n, t11 / n, t12 / n
         t20, t21, t22 = m1 * t12 - m2 * t11, m2 * t10 - m0 * t12, m0 * t11 - m1 * t10
-        best = np.full(9, np.inf)
+        for d in range(8):
+            tilt_w[d, 0] = cos[d] * t10 + sin[d] * t20
+            tilt_w[d, 1] = cos[d] * t11 + sin[d] * t21
+            tilt_w[d, 2] = cos[d] * t12 + sin[d] * t22
+        best[:] = np.inf
         for i in range(lo, hi):
             r = rows[i]
             best[0] = min(best[0], value[r])
             for d in range(8):
-                w0, w1, w2 = cos[d] * t10 + sin[d] * t20, cos[d] * t11 + sin[d] * t21, cos[d] * t12 + sin[d] * t22
-                score = value[r] + tilt * ((phi[r, 3] * w0 + phi[r, 5] * w2) + phi[r, 4] * w1)
+                score = value[r] + tilt * ((phi[r, 3] * tilt_w[d, 0] + phi[r, 5] * tilt_w[d, 2])
+                                           + phi[r, 4] * tilt_w[d, 1])
                 best[d + 1] = min(best[d + 1], score)
         for i in range(lo, hi):
             r = rows[i]
@@ -234,8 +253,8 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
             for d in range(8):
                 if hit:
                     break
-                w0, w1, w2 = cos[d] * t10 + sin[d] * t20, cos[d] * t11 + sin[d] * t21, cos[d] * t12 + sin[d] * t22
-                hit = value[r] + tilt * ((phi[r, 3] * w0 + phi[r, 5] * w2) + phi[r, 4] * w1) <= best[d + 1]
+                hit = value[r] + tilt * ((phi[r, 3] * tilt_w[d, 0] + phi[r, 5] * tilt_w[d, 2])
+                                         + phi[r, 4] * tilt_w[d, 1]) <= best[d + 1]
             out[i] = hit
 
 
@@ -303,7 +322,7 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         x_a = np.take(x_c, active, axis=0)
         desired = targets.robot[c].take(sel[active])
         pairs = _RobotPairs(c, rot_c, pos_c, sel[active], np.take(x_w, active, axis=0), x_a,
-                            far_field(_take(q, active), x_a, desired, track.is_ground), desired)
+                            far_field(q, active, x_a, desired, track.is_ground), desired)
         # Against the ground the hull vertices (guards) imply every area probe: skip those.
         if not track.is_ground:
             ib = np.flatnonzero(q.in_band & (q.d < check))
@@ -599,7 +618,7 @@ def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i:
         a = sel[active]
         a_c = np.take(o_c, a, axis=0)
         pairs.append((c, track, rot_c, pos_c, a, a_c,
-                      far_field(_take(q, active), a_c, targets.objects[i][c].take(a), track.is_ground)))
+                      far_field(q, active, a_c, targets.objects[i][c].take(a), track.is_ground)))
         ib = np.flatnonzero(q.in_band & (q.d < check))
         pts = sel[ib]
         con.add(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
