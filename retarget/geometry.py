@@ -820,18 +820,11 @@ class GroundChannel:
         """Exact triple of probes ``x_c`` (N, 3) in the world frame (``exact_witness`` has no
         effect; without ``normals``, ``n`` is None)."""
         x = _check_points(self.name, x_c)
-        n_pts = len(x)
-        d = x[:, 2].copy()
-        w = x.copy()
-        w[:, 2] = 0.0
-        n = None
-        if normals:
-            n = np.zeros((n_pts, 3))
-            n[:, 2] = np.where(d < 0.0, -1.0, 1.0)
-        grad = np.zeros((n_pts, 3))
-        grad[:, 2] = 1.0
-        dw_dx = np.broadcast_to(np.diag([1.0, 1.0, 0.0]), (n_pts, 3, 3)).copy()
-        return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=d < self.band_m)
+        k = len(x)
+        d, w, grad, dw_dx = np.empty(k), np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 3, 3))
+        n, in_band = np.empty((k if normals else 0, 3)), np.empty(k, dtype=bool)
+        _ground_query(x, self.band_m, d, w, n, grad, dw_dx, in_band)
+        return ProximityQuery(d=d, w=w, n=n if normals else None, grad_d=grad, dw_dx=dw_dx, in_band=in_band)
 
     def distance(self, x_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(d = z, ∂d/∂x = e_z, d < band) of points (N, 3) in the world frame."""
@@ -855,6 +848,22 @@ class GroundChannel:
     def geodesic_weights(self, w_hat: np.ndarray) -> None:
         """None: the plane needs no geodesic table."""
         return None
+
+
+@numba.njit(cache=True)
+def _ground_query(x, band, d, w, n, grad, dw_dx, in_band):
+    """``GroundChannel.query`` point by point: d = z, w = (x, y, 0), n = ±e_z (when ``n`` has
+    rows), ∂d/∂x = e_z, ∂w/∂x = diag(1, 1, 0), in band below ``band``."""
+    for i in range(x.shape[0]):
+        d[i] = x[i, 2]
+        w[i, 0], w[i, 1], w[i, 2] = x[i, 0], x[i, 1], 0.0
+        if n.shape[0]:
+            n[i, 0], n[i, 1], n[i, 2] = 0.0, 0.0, -1.0 if d[i] < 0.0 else 1.0
+        grad[i, 0], grad[i, 1], grad[i, 2] = 0.0, 0.0, 1.0
+        for a in range(3):
+            for b in range(3):
+                dw_dx[i, a, b] = 1.0 if a == b and a < 2 else 0.0
+        in_band[i] = d[i] < band
 
 
 def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache_dir: Path | None = None,
