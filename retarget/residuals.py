@@ -220,15 +220,6 @@ class Rows:
                       for f in ("value", "weight", "phi", "body_a", "body_b")))
 
 
-def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """u × v for (k, 3) arrays: np.cross without its axis handling, twice as fast on the hot path."""
-    out = np.empty(np.broadcast_shapes(u.shape, v.shape))
-    out[..., 0] = u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1]
-    out[..., 1] = u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2]
-    out[..., 2] = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-    return out
-
-
 def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin_b: np.ndarray | None) -> np.ndarray:
     """(k, 12) factors φ = (a, (x − o_A) × a, −a, −(x − o_B) × a) for world gradients a (k, 3)
     at points x (k, 3); origins (k, 3) or (3,).

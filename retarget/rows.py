@@ -42,7 +42,6 @@ from retarget.residuals import (
     _to_channel_point,
     _to_world_direction,
     _twist_row,
-    cross,
     far_field,
     interaction_rows,
     signed_distance_rows,
@@ -1081,10 +1080,25 @@ def base_step_rows(problem: Problem, state: SolverState, t: int, fr: LinkFrames)
 def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:
     """Capsule pairs closer than ``margin``: d + n·(ẋ_a − ẋ_b) rows (n from b to a)."""
     sc = problem.kin.self_collision.distances(fr, within=margin)
-    close = sc.dist < margin
-    la, lb, n = sc.link_a[close], sc.link_b[close], sc.normal[close]
-    # the distance's rate is n·(ẋ_a − ẋ_b) at the surface points (the radii lie along n)
-    phi = np.concatenate([n, cross(sc.point_a[close] - fr.pos[la], n), -n, -cross(sc.point_b[close] - fr.pos[lb], n)],
-                         axis=1)
-    return Rows(sc.dist[close], np.ones(len(la)), phi, la, lb)
+    close = np.flatnonzero(sc.dist < margin)
+    phi = np.empty((len(close), 12))
+    _capsule_rows(sc.point_a, sc.point_b, sc.normal, sc.link_a, sc.link_b, fr.pos, close, phi)
+    return Rows(sc.dist[close], np.ones(len(close)), phi, sc.link_a[close], sc.link_b[close])
+
+
+@numba.njit(cache=True)
+def _capsule_rows(point_a, point_b, normal, link_a, link_b, pos, close, out):
+    """φ of the capsule pairs ``close``: the distance's rate is n·(ẋ_a − ẋ_b) at the surface
+    points (the radii lie along n), φ = (n, (p_a − o_a) × n, −n, −((p_b − o_b) × n)): the
+    second cross product negated after it is computed, as the array form had it."""
+    for r in range(close.shape[0]):
+        k = close[r]
+        n0, n1, n2 = normal[k, 0], normal[k, 1], normal[k, 2]
+        a, b = link_a[k], link_b[k]
+        u0, u1, u2 = point_a[k, 0] - pos[a, 0], point_a[k, 1] - pos[a, 1], point_a[k, 2] - pos[a, 2]
+        v0, v1, v2 = point_b[k, 0] - pos[b, 0], point_b[k, 1] - pos[b, 1], point_b[k, 2] - pos[b, 2]
+        out[r, 0], out[r, 1], out[r, 2] = n0, n1, n2
+        out[r, 3], out[r, 4], out[r, 5] = u1 * n2 - u2 * n1, u2 * n0 - u0 * n2, u0 * n1 - u1 * n0
+        out[r, 6], out[r, 7], out[r, 8] = -n0, -n1, -n2
+        out[r, 9], out[r, 10], out[r, 11] = -(v1 * n2 - v2 * n1), -(v2 * n0 - v0 * n2), -(v0 * n1 - v1 * n0)
 
