@@ -38,6 +38,10 @@ import igl
 import numba
 import numpy as np
 import potpourri3d as pp3d
+from llvmlite import ir as llvm_ir
+from numba import types
+from numba.core import cgutils
+from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -195,11 +199,6 @@ class VoxelGrid:
         """(nx·ny·nz, 3) node positions in row order (m)."""
         return node_positions(self.origin, self.resolution, self.shape)
 
-    def nearest_node(self, x: np.ndarray) -> np.ndarray:
-        """(N,) row of the node nearest to each point (clipped to the grid)."""
-        i = np.clip(np.rint((x - self.origin) * (1.0 / self.resolution)), 0.0, self._upper)
-        return i.astype(np.intp) @ self._strides
-
     def _cells(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Lower-corner node index (N, 3) of each point's cell, position in the cell (N, 3) in
         [0, 1], inside-grid mask (N,). Outside points use the cell of their projection."""
@@ -242,6 +241,52 @@ def _interpolate(x: np.ndarray, values: np.ndarray, origin: np.ndarray, inv_reso
     return val, jac, inside
 
 
+#: Points ahead whose grid cells a kernel asks the cache for while it interpolates the current
+#: one: grid lookups are scattered over tens of MB, and waiting for each cell in turn took most
+#: of their time (the loads of several points ahead overlap instead).
+PREFETCH_AHEAD = 8
+
+
+@intrinsic
+def _prefetch(typingctx, ary, index):
+    """Ask the cache for the element ``ary[index]`` (``index`` a tuple, one int per axis) without
+    waiting for it (LLVM's prefetch: read, keep in all cache levels); changes no value."""
+    sig = types.void(ary, index)
+
+    def codegen(context, builder, signature, args):
+        aryty, idxty = signature.args
+        array = context.make_array(aryty)(context, builder, args[0])
+        idx = [context.cast(builder, v, t, types.intp)
+               for v, t in zip(cgutils.unpack_tuple(builder, args[1], len(idxty)), idxty)]
+        ptr = cgutils.get_item_pointer(context, builder, aryty, array, idx, wraparound=False)
+        i32 = llvm_ir.IntType(32)
+        fn = cgutils.get_or_insert_function(builder.module, llvm_ir.FunctionType(llvm_ir.VoidType(),
+                                                                                 [ptr.type, i32, i32, i32]),
+                                            "llvm.prefetch.p0")
+        builder.call(fn, [ptr, i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_cell(values, r, sx, sy):
+    """Prefetch the 8 corner rows of the cell whose lower node is row r of ``values`` (M, C):
+    four pairs of adjacent rows (z neighbours), each pair's first and last element."""
+    last = values.shape[1] - 1
+    for o in (0, sy, sx, sx + sy):
+        _prefetch(values, (r + o, 0))
+        _prefetch(values, (r + o + 1, last))
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_phi_cell(phi, r, sx, sy):
+    """``_prefetch_cell`` of a flat Φ table (M,)."""
+    for o in (0, sy, sx, sx + sy):
+        _prefetch(phi, (r + o,))
+        _prefetch(phi, (r + o + 1,))
+
+
 @numba.njit(cache=True)
 def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, offset, val, jac, inside):
     """Trilinear interpolant of node values (M, C) at points x (N, 3), point i in the frame of
@@ -250,24 +295,43 @@ def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, o
     and inside (N,). Points outside use the cell of their projection onto the grid box.
 
     Per channel, successive lerps along z, y, x; each level's difference is the partial along
-    that axis (corner rows: z pairs adjacent, then y, then x).
+    that axis (corner rows: z pairs adjacent, then y, then x). The cell of the point
+    ``PREFETCH_AHEAD`` further on is prefetched meanwhile.
     """
-    for i in range(x.shape[0]):
+    n = x.shape[0]
+    for i in range(n):
+        if i + PREFETCH_AHEAD < n:
+            r, _, _, _, _ = _cell_row(x, i + PREFETCH_AHEAD, grid, origin, inv_resolution, upper, strides, offset)
+            g = grid[i + PREFETCH_AHEAD]
+            _prefetch_cell(values, r, strides[g, 0], strides[g, 1])
         g = grid[i]
-        ix, fx, ok_x = _cell_axis(x[i, 0], origin[g, 0], inv_resolution[g], upper[g, 0])
-        iy, fy, ok_y = _cell_axis(x[i, 1], origin[g, 1], inv_resolution[g], upper[g, 1])
-        iz, fz, ok_z = _cell_axis(x[i, 2], origin[g, 2], inv_resolution[g], upper[g, 2])
-        ok = ok_x and ok_y and ok_z
+        r, fx, fy, fz, ok = _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset)
         inside[i] = ok
         scale = inv_resolution[g] * ok
         sx, sy = strides[g, 0], strides[g, 1]
-        r = offset[g] + ix * sx + iy * sy + iz * strides[g, 2]
         for k in range(values.shape[1]):
             v, gx, gy, gz = _trilinear_phi(values[:, k], r, sx, sy, fx, fy, fz)
             val[i, k] = v
             jac[i, k, 0] = gx * scale
             jac[i, k, 1] = gy * scale
             jac[i, k, 2] = gz * scale
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset):
+    """Point i's cell in its grid grid[i] (arguments as ``_trilinear_kernel``): see ``_cell_of``."""
+    return _cell_of(x[i, 0], x[i, 1], x[i, 2], grid[i], origin, inv_resolution, upper, strides, offset)
+
+
+@numba.njit(cache=True, inline="always")
+def _cell_of(x0, x1, x2, g, origin, inv_resolution, upper, strides, offset):
+    """The cell of point x in grid g (tables as ``_trilinear_kernel``'s): the row of its lower
+    node, the position in the cell (fx, fy, fz) in [0, 1], and whether x lies within the grid
+    (outside, the cell of its projection)."""
+    ix, fx, ok_x = _cell_axis(x0, origin[g, 0], inv_resolution[g], upper[g, 0])
+    iy, fy, ok_y = _cell_axis(x1, origin[g, 1], inv_resolution[g], upper[g, 1])
+    iz, fz, ok_z = _cell_axis(x2, origin[g, 2], inv_resolution[g], upper[g, 2])
+    return offset[g] + ix * strides[g, 0] + iy * strides[g, 1] + iz * strides[g, 2], fx, fy, fz, ok_x and ok_y and ok_z
 
 
 @numba.njit(cache=True)
@@ -323,6 +387,11 @@ class GridStack:
         sizes = np.array([0 if g is None else len(g.values) for g in grids])
         self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
         self.phi = (np.concatenate([g._phi for g in present]) if present else np.zeros(0))[:, None]
+        #: (G, 3) centre of each grid's box (grid frame) and (G,) its half diagonal (inf when missing)
+        self.box_centre = self.origin + 0.5 * self.upper * np.array([0.0 if g is None else g.resolution
+                                                                      for g in grids])[:, None]
+        self.box_radius = np.array([np.inf if g is None else 0.5 * g.resolution * np.linalg.norm(g._upper)
+                                    for g in grids])
 
     def distance(self, x: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Φ (N,), its gradient (N, 3) and the inside mask (N,) of points x (N, 3), each in the
@@ -426,9 +495,11 @@ class SurfaceGeodesics:
         """Neighbour indices (N, k) and normalised weights (N, k) of points x (N, 3), and with
         ``derivative`` ∂weights/∂x (N, k, 3)."""
         x = np.ascontiguousarray(x, dtype=np.float64)
-        idx = np.take(self.neighbour_table, self.grid.nearest_node(x), axis=0)
+        table, grid = self.neighbour_table, self.grid
+        idx = np.empty((len(x), table.shape[1]), table.dtype)
         a = np.empty(idx.shape)
         da = np.empty(idx.shape + (3,)) if derivative else np.empty((0, 0, 3))
+        _neighbours(x, table, grid.origin, 1.0 / grid.resolution, grid._upper, grid._strides, idx)
         _blend_weights(x, idx, self.points, 1.0 / self.spacing_m**2, a, da)
         return (idx, a, da) if derivative else (idx, a)
 
@@ -451,6 +522,27 @@ class SurfaceGeodesics:
         e = np.sqrt(np.einsum("nj,nj->n", chord, chord))
         unit = np.divide(chord, e[:, None], out=np.zeros_like(chord), where=e[:, None] > 0)
         return e * gamma, gamma[:, None] * unit + e[:, None] * dgamma
+
+
+@numba.njit(cache=True)
+def _neighbours(x, table, origin, inv_resolution, upper, strides, out):
+    """out[n] ← the neighbour-table row of the grid node nearest to x[n] (grid frame; see
+    ``_nearest_row``); the rows of ``PREFETCH_AHEAD`` points on are prefetched (the table is
+    scattered over 8 MB)."""
+    for n in range(x.shape[0]):
+        if n + PREFETCH_AHEAD < x.shape[0]:
+            _prefetch(table, (_nearest_row(x, n + PREFETCH_AHEAD, origin, inv_resolution, upper, strides), 0))
+        out[n] = table[_nearest_row(x, n, origin, inv_resolution, upper, strides)]
+
+
+@numba.njit(cache=True, inline="always")
+def _nearest_row(x, n, origin, inv_resolution, upper, strides):
+    """The row of the grid node nearest to x[n] (its index per axis rounded half to even and
+    clipped to the grid, then the strides)."""
+    row = 0
+    for c in range(3):
+        row += int(min(max(np.rint((x[n, c] - origin[c]) * inv_resolution), 0.0), upper[c])) * strides[c]
+    return row
 
 
 @numba.njit(cache=True)
@@ -484,8 +576,14 @@ def _blend_weights(x, idx, points, inv_h2, a, da):
 
 @numba.njit(cache=True)
 def _blend_ratio(ratio, i_idx, a, da, j_idx, b, gamma, dgamma):
-    """γ = Σ_i a_i row_i and ∂γ/∂w = Σ_i ∂a_i row_i with row_i = Σ_j b_j ratio[i, j]."""
+    """γ = Σ_i a_i row_i and ∂γ/∂w = Σ_i ∂a_i row_i with row_i = Σ_j b_j ratio[i, j]. The
+    table (K × K, 16 MB at K = 2000) is read at scattered entries: those of the witness
+    ``PREFETCH_AHEAD`` further on are prefetched meanwhile."""
     for n in range(a.shape[0]):
+        if n + PREFETCH_AHEAD < a.shape[0]:
+            for i in range(a.shape[1]):
+                for j in range(b.shape[1]):
+                    _prefetch(ratio, (i_idx[n + PREFETCH_AHEAD, i], j_idx[n + PREFETCH_AHEAD, j]))
         g = 0.0
         d0 = d1 = d2 = 0.0
         for i in range(a.shape[1]):
@@ -615,9 +713,7 @@ class SDFChannel:
         """
         x = _check_points(self.name, x_c)
         val, jac, inside = self.grid.interpolate(x)
-        in_band = inside & (val[:, 0] < self.band_m)
-        d = np.where(in_band, val[:, 0], self.band_m)
-        jac *= in_band[:, None, None]
+        d, in_band = _into_band(val[:, 0], jac.reshape(len(x), jac.shape[1] * 3), inside, self.band_m)
         w = val[:, 1:]
         dw_dx = jac[:, 1:]
         # Only penetrating probes and blends that stretch more than a closest-point map does on
@@ -660,9 +756,9 @@ class SDFChannel:
         """(d, ∂d/∂x, in_band) of :meth:`query` alone, for points that need no witness
         (non-penetration constraints): (N,), (N, 3), (N,) bool, channel frame."""
         x = _check_points(self.name, x_c)
-        d, grad, inside = self.grid.interpolate_distance(x)
-        in_band = inside & (d < self.band_m)
-        return np.where(in_band, d, self.band_m), grad * in_band[:, None], in_band
+        val, grad, inside = self.grid.interpolate_distance(x)
+        d, in_band = _into_band(val, grad, inside, self.band_m)
+        return d, grad, in_band
 
     def _closest_points(self, x: np.ndarray) -> np.ndarray:
         """Exact closest surface points (M, 3); the AABB tree is built on first use (it cannot be pickled)."""
@@ -692,6 +788,25 @@ class SDFChannel:
         return self.geodesics.weights(w_hat)
 
 
+def _into_band(val: np.ndarray, jac: np.ndarray, inside: np.ndarray, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolated distances ``val`` (N,) as a query answers them: d = val inside the grid and
+    below the band, else the band (N,), and that mask (N,); the rows of their Jacobian ``jac``
+    (N, ·) are zeroed in place outside it (multiplied by 0.0, as by the mask)."""
+    d, in_band = np.empty(len(val)), np.empty(len(val), dtype=bool)
+    _into_band_kernel(val, jac, inside, float(band), d, in_band)
+    return d, in_band
+
+
+@numba.njit(cache=True)
+def _into_band_kernel(val, jac, inside, band, d, in_band):
+    for i in range(val.shape[0]):
+        in_band[i] = inside[i] and val[i] < band
+        d[i] = val[i] if in_band[i] else band
+        scale = 1.0 if in_band[i] else 0.0
+        for j in range(jac.shape[1]):
+            jac[i, j] *= scale
+
+
 class GroundChannel:
     """The flat ground z = 0 (world frame), exact everywhere; in_band marks z < band_m."""
 
@@ -705,18 +820,11 @@ class GroundChannel:
         """Exact triple of probes ``x_c`` (N, 3) in the world frame (``exact_witness`` has no
         effect; without ``normals``, ``n`` is None)."""
         x = _check_points(self.name, x_c)
-        n_pts = len(x)
-        d = x[:, 2].copy()
-        w = x.copy()
-        w[:, 2] = 0.0
-        n = None
-        if normals:
-            n = np.zeros((n_pts, 3))
-            n[:, 2] = np.where(d < 0.0, -1.0, 1.0)
-        grad = np.zeros((n_pts, 3))
-        grad[:, 2] = 1.0
-        dw_dx = np.broadcast_to(np.diag([1.0, 1.0, 0.0]), (n_pts, 3, 3)).copy()
-        return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw_dx, in_band=d < self.band_m)
+        k = len(x)
+        d, w, grad, dw_dx = np.empty(k), np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 3, 3))
+        n, in_band = np.empty((k if normals else 0, 3)), np.empty(k, dtype=bool)
+        _ground_query(x, self.band_m, d, w, n, grad, dw_dx, in_band)
+        return ProximityQuery(d=d, w=w, n=n if normals else None, grad_d=grad, dw_dx=dw_dx, in_band=in_band)
 
     def distance(self, x_c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(d = z, ∂d/∂x = e_z, d < band) of points (N, 3) in the world frame."""
@@ -740,6 +848,22 @@ class GroundChannel:
     def geodesic_weights(self, w_hat: np.ndarray) -> None:
         """None: the plane needs no geodesic table."""
         return None
+
+
+@numba.njit(cache=True)
+def _ground_query(x, band, d, w, n, grad, dw_dx, in_band):
+    """``GroundChannel.query`` point by point: d = z, w = (x, y, 0), n = ±e_z (when ``n`` has
+    rows), ∂d/∂x = e_z, ∂w/∂x = diag(1, 1, 0), in band below ``band``."""
+    for i in range(x.shape[0]):
+        d[i] = x[i, 2]
+        w[i, 0], w[i, 1], w[i, 2] = x[i, 0], x[i, 1], 0.0
+        if n.shape[0]:
+            n[i, 0], n[i, 1], n[i, 2] = 0.0, 0.0, -1.0 if d[i] < 0.0 else 1.0
+        grad[i, 0], grad[i, 1], grad[i, 2] = 0.0, 0.0, 1.0
+        for a in range(3):
+            for b in range(3):
+                dw_dx[i, a, b] = 1.0 if a == b and a < 2 else 0.0
+        in_band[i] = d[i] < band
 
 
 def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache_dir: Path | None = None,

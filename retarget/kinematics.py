@@ -106,16 +106,8 @@ class RobotKinematics:
         placement = np.array([m.homogeneous for m in data.oMi])[self.joint_ids]  # (L, 4, 4)
         rot = placement[:, :3, :3]
         pos = placement[:, :3, 3]
-        jw = data.J  # (6, nv) WORLD: spatial velocity at the world origin
-        ang = jw[3:]
-        # the velocity of each link origin o: v_0 + ω × o, i.e. J_lin − [o]× J_ang
         jac = np.empty((NUM_LINKS, 6, self.nv))
-        x, y, z = pos[:, 0, None], pos[:, 1, None], pos[:, 2, None]
-        jac[:, 0] = jw[0] - (y * ang[2] - z * ang[1])
-        jac[:, 1] = jw[1] - (z * ang[0] - x * ang[2])
-        jac[:, 2] = jw[2] - (x * ang[1] - y * ang[0])
-        jac[:, 3:] = ang
-        jac *= self.support[:, None, :]
+        _link_jacobians(data.J, pos, self.support, jac)  # data.J (6, nv) WORLD: spatial velocity at the origin
         return LinkFrames(rot, pos, jac)
 
     def integrate(self, q: np.ndarray, dv: np.ndarray) -> np.ndarray:
@@ -128,6 +120,22 @@ class RobotKinematics:
     @cached_property
     def self_collision(self) -> SelfCollision:
         return SelfCollision.build(self)
+
+
+@numba.njit(cache=True)
+def _link_jacobians(jw, pos, support, jac):
+    """jac[l] ← the LOCAL_WORLD_ALIGNED Jacobian of link l from the WORLD one ``jw`` (6, nv): the
+    velocity of the link origin o is v_0 + ω × o, i.e. J_lin − [o]× J_ang, on the coordinates
+    that move the link (``support``, others zero)."""
+    for link in range(jac.shape[0]):
+        x, y, z = pos[link, 0], pos[link, 1], pos[link, 2]
+        for v in range(jac.shape[2]):
+            s = 1.0 if support[link, v] else 0.0
+            jac[link, 0, v] = (jw[0, v] - (y * jw[5, v] - z * jw[4, v])) * s
+            jac[link, 1, v] = (jw[1, v] - (z * jw[3, v] - x * jw[5, v])) * s
+            jac[link, 2, v] = (jw[2, v] - (x * jw[4, v] - y * jw[3, v])) * s
+            for r in range(3, 6):
+                jac[link, r, v] = jw[r, v] * s
 
 
 @dataclass(frozen=True)

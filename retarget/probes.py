@@ -167,11 +167,24 @@ def _pose_into(points, body, frame, rot, pos, out_w, out_f):
 def _pose_in_frame(points, i, body, frame, rot, pos):
     """Point i of ``points`` on ``body``: its world position and its position in the frame of
     ``frame``, as six scalars (the arithmetic of :func:`_pose_into`)."""
-    w0 = rot[body, 0, 0] * points[i, 0] + rot[body, 0, 1] * points[i, 1] + rot[body, 0, 2] * points[i, 2] + pos[body, 0]
-    w1 = rot[body, 1, 0] * points[i, 0] + rot[body, 1, 1] * points[i, 1] + rot[body, 1, 2] * points[i, 2] + pos[body, 1]
-    w2 = rot[body, 2, 0] * points[i, 0] + rot[body, 2, 1] * points[i, 1] + rot[body, 2, 2] * points[i, 2] + pos[body, 2]
+    w0, w1, w2 = _posed_point(points, i, body, rot, pos)
+    return (w0, w1, w2) + _in_frame(w0, w1, w2, frame, rot, pos)
+
+
+@numba.njit(cache=True, inline="always")
+def _posed_point(points, i, body, rot, pos):
+    """Point i of ``points`` (frame of ``body``) in the world (the arithmetic of :func:`_pose_into`)."""
+    return (rot[body, 0, 0] * points[i, 0] + rot[body, 0, 1] * points[i, 1] + rot[body, 0, 2] * points[i, 2] + pos[body, 0],
+            rot[body, 1, 0] * points[i, 0] + rot[body, 1, 1] * points[i, 1] + rot[body, 1, 2] * points[i, 2] + pos[body, 1],
+            rot[body, 2, 0] * points[i, 0] + rot[body, 2, 1] * points[i, 1] + rot[body, 2, 2] * points[i, 2] + pos[body, 2])
+
+
+@numba.njit(cache=True, inline="always")
+def _in_frame(w0, w1, w2, frame, rot, pos):
+    """World point w in the frame of ``frame``, Rᵀ(w − o) summed left to right (the arithmetic of
+    :func:`_pose_into`, and of numpy's einsum "kji,kj->ki")."""
     d0, d1, d2 = w0 - pos[frame, 0], w1 - pos[frame, 1], w2 - pos[frame, 2]
-    return (w0, w1, w2, rot[frame, 0, 0] * d0 + rot[frame, 1, 0] * d1 + rot[frame, 2, 0] * d2,
+    return (rot[frame, 0, 0] * d0 + rot[frame, 1, 0] * d1 + rot[frame, 2, 0] * d2,
             rot[frame, 0, 1] * d0 + rot[frame, 1, 1] * d1 + rot[frame, 2, 1] * d2,
             rot[frame, 0, 2] * d0 + rot[frame, 1, 2] * d1 + rot[frame, 2, 2] * d2)
 

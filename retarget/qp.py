@@ -222,13 +222,30 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
         tm.lap("qp_solve")
         if state.qp.failures > failures:
             break  # the rows conflict already: more rows cannot help, the relaxed step stands
-        twist = jac @ delta  # (bodies, 6)
-        both = np.concatenate([np.take(twist, rows.body_a, axis=0), np.take(twist, rows.body_b, axis=0)], axis=1)
-        predicted = rows.value + np.einsum("kc,kc->k", rows.phi, both)
-        violated = (predicted < -eps) & ~chosen
+        violated = np.empty(len(rows), dtype=bool)
+        _violated_rows(rows.value, rows.phi, rows.body_a, rows.body_b, jac @ delta, chosen, -eps, violated)
         tm.lap("qp_assembly")
         if not violated.any():
             break
         chosen |= violated
     stats.qp_rows.append(int(chosen.sum()))
     return delta
+
+
+@numba.njit(cache=True)
+def _violated_rows(value, phi, body_a, body_b, twist, chosen, threshold, out):
+    """out[k] ← row k is not chosen and its prediction r + φ_A·ν_A + φ_B·ν_B at the bodies'
+    twists ``twist`` (bodies, 6; FIXED the last, zero) is below ``threshold``. The 12-term dot
+    product in the order of numpy's einsum (its baseline SSE2 kernel: two lanes, each summing
+    its products of a block of eight last first, the rest in pairs, then lane 0 + lane 1)."""
+    fixed = twist.shape[0] - 1
+    for k in range(value.shape[0]):
+        a = body_a[k] if body_a[k] != FIXED else fixed
+        b = body_b[k] if body_b[k] != FIXED else fixed
+        p0, p1, p2 = phi[k, 0] * twist[a, 0], phi[k, 1] * twist[a, 1], phi[k, 2] * twist[a, 2]
+        p3, p4, p5 = phi[k, 3] * twist[a, 3], phi[k, 4] * twist[a, 4], phi[k, 5] * twist[a, 5]
+        p6, p7, p8 = phi[k, 6] * twist[b, 0], phi[k, 7] * twist[b, 1], phi[k, 8] * twist[b, 2]
+        p9, p10, p11 = phi[k, 9] * twist[b, 3], phi[k, 10] * twist[b, 4], phi[k, 11] * twist[b, 5]
+        lane0 = p10 + (p8 + (p0 + (p2 + (p4 + (p6 + 0.0)))))
+        lane1 = p11 + (p9 + (p1 + (p3 + (p5 + (p7 + 0.0)))))
+        out[k] = not chosen[k] and value[k] + (0.0 + (lane0 + lane1)) < threshold

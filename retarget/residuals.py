@@ -78,20 +78,58 @@ class InteractionConfig:
 
 def beta_bar(d_hat: np.ndarray, sigma: float) -> np.ndarray:
     """β̄ = (1 − (d̂)₊/σ)₊²: gates r^x, r^n to pairs in contact in the demonstration."""
-    return np.clip(1.0 - np.maximum(d_hat, 0.0) / sigma, 0.0, None) ** 2
+    d_hat = np.asarray(d_hat, np.float64)
+    out = np.empty(d_hat.shape)
+    _beta_bar_into(d_hat.ravel(), float(sigma), out.ravel())
+    return out
 
 
 def beta(d_hat: np.ndarray, d: np.ndarray, sigma: float, beta_max: float) -> np.ndarray:
     """β = min((1 − min((d̂)₊, d)/σ)₊², β_max): gates r^d to pairs close in the demonstration or now."""
-    return np.minimum(np.clip(1.0 - np.minimum(np.maximum(d_hat, 0.0), d) / sigma, 0.0, None) ** 2, beta_max)
+    return beta_and_slope(d_hat, d, sigma, beta_max)[0]
 
 
 def beta_and_slope(d_hat: np.ndarray, d: np.ndarray, sigma: float, beta_max: float) -> tuple[np.ndarray, np.ndarray]:
     """β (see :func:`beta`) and ∂β/∂d: −2(1 − d/σ)/σ where the current distance is the smaller
     one and the kernel is neither clipped at 0 nor capped at β_max, else 0."""
-    b = beta(d_hat, d, sigma, beta_max)
-    live = (d < np.maximum(d_hat, 0.0)) & (d < sigma) & (b < beta_max)
-    return b, np.where(live, -2.0 * (1.0 - d / sigma) / sigma, 0.0)
+    d_hat, d = np.broadcast_arrays(np.asarray(d_hat, np.float64), np.asarray(d, np.float64))
+    b, slope = np.empty(d.shape), np.empty(d.shape)
+    _beta_and_slope_into(np.ascontiguousarray(d_hat).ravel(), np.ascontiguousarray(d).ravel(), float(sigma),
+                         float(beta_max), b.ravel(), slope.ravel())
+    return b, slope
+
+
+@numba.njit(cache=True, inline="always")
+def _positive(x):
+    """(x)₊, as np.maximum(x, 0.0)."""
+    return x if x > 0.0 else 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _beta_bar(d_hat, sigma):
+    b = _positive(1.0 - _positive(d_hat) / sigma)
+    return b * b
+
+
+@numba.njit(cache=True, inline="always")
+def _beta_and_slope(d_hat, d, sigma, beta_max):
+    h = _positive(d_hat)
+    b = _positive(1.0 - min(h, d) / sigma)
+    b = min(b * b, beta_max)
+    live = d < h and d < sigma and b < beta_max
+    return b, (-2.0 * (1.0 - d / sigma) / sigma if live else 0.0)
+
+
+@numba.njit(cache=True)
+def _beta_bar_into(d_hat, sigma, out):
+    for i in range(d_hat.shape[0]):
+        out[i] = _beta_bar(d_hat[i], sigma)
+
+
+@numba.njit(cache=True)
+def _beta_and_slope_into(d_hat, d, sigma, beta_max, b, slope):
+    for i in range(d.shape[0]):
+        b[i], slope[i] = _beta_and_slope(d_hat[i], d[i], sigma, beta_max)
 
 
 @dataclass(frozen=True)
@@ -182,15 +220,6 @@ class Rows:
                       for f in ("value", "weight", "phi", "body_a", "body_b")))
 
 
-def cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """u × v for (k, 3) arrays: np.cross without its axis handling, twice as fast on the hot path."""
-    out = np.empty(np.broadcast_shapes(u.shape, v.shape))
-    out[..., 0] = u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1]
-    out[..., 1] = u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2]
-    out[..., 2] = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-    return out
-
-
 def twist_factors(a_w: np.ndarray, x_w: np.ndarray, origin_a: np.ndarray, origin_b: np.ndarray | None) -> np.ndarray:
     """(k, 12) factors φ = (a, (x − o_A) × a, −a, −(x − o_B) × a) for world gradients a (k, 3)
     at points x (k, 3); origins (k, 3) or (3,).
@@ -268,26 +297,48 @@ class PairSet:
     norm: np.ndarray  # (k,)
 
 
-def far_field(q: ProximityQuery, x_c: np.ndarray, desired: Triples, is_ground: bool) -> ProximityQuery:
-    """Replace out-of-band answers of an SDF channel by the demonstrated witness as attractor.
+def far_field(q: ProximityQuery, index: np.ndarray, x_c: np.ndarray, desired: Triples,
+              is_ground: bool) -> ProximityQuery:
+    """The answers of ``index`` (k,) of ``q``, those out of band replaced, for an SDF channel, by
+    the demonstrated witness as attractor; ``x_c`` (k, 3) and ``desired`` are the selected pairs'.
 
     A pair active in the demonstration but farther than the grid reaches has no gradient; the
-    distance to ŵ (an upper bound of d, exact as the probe approaches ŵ) pulls it back in.
+    distance to ŵ (an upper bound of d, exact as the probe approaches ŵ) pulls it back in. One
+    numba pass (|x − ŵ|² summed as numpy's einsum sums three terms, (x + z) + y).
     """
-    out = np.flatnonzero(~q.in_band)
-    if is_ground or len(out) == 0:
-        return q
-    w_hat = np.take(desired.w, out, axis=0)
-    diff = np.take(x_c, out, axis=0) - w_hat
-    dist = np.sqrt(np.einsum("kj,kj->k", diff, diff))
-    unit = diff / np.maximum(dist, 1e-12)[:, None]
-    d, w, grad, dw = q.d.copy(), q.w.copy(), q.grad_d.copy(), q.dw_dx.copy()
-    d[out], w[out], grad[out], dw[out] = dist, w_hat, unit, 0.0
-    n = None
-    if q.n is not None:
-        n = q.n.copy()
-        n[out] = unit
-    return ProximityQuery(d=d, w=w, n=n, grad_d=grad, dw_dx=dw, in_band=q.in_band)
+    k = len(index)
+    d, w, grad, dw, in_band = np.empty(k), np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 3, 3)), np.empty(k, bool)
+    n = np.empty((k if q.n is not None else 0, 3))
+    _far_field_into(q.d, q.w, q.grad_d, q.dw_dx, q.in_band, np.zeros((0, 3)) if q.n is None else q.n,
+                    np.asarray(index, np.intp), x_c, desired.w, is_ground, d, w, grad, dw, in_band, n)
+    return ProximityQuery(d=d, w=w, n=None if q.n is None else n, grad_d=grad, dw_dx=dw, in_band=in_band)
+
+
+@numba.njit(cache=True)
+def _far_field_into(d, w, grad_d, dw_dx, in_band, n, index, x_c, w_hat, ground, out_d, out_w, out_grad, out_dw,
+                    out_in_band, out_n):
+    for k in range(index.shape[0]):
+        i = index[k]
+        out_in_band[k] = in_band[i]
+        if in_band[i] or ground:
+            out_d[k] = d[i]
+            for a in range(3):
+                out_w[k, a], out_grad[k, a] = w[i, a], grad_d[i, a]
+                for b in range(3):
+                    out_dw[k, a, b] = dw_dx[i, a, b]
+                if out_n.shape[0]:
+                    out_n[k, a] = n[i, a]
+            continue
+        e0, e1, e2 = x_c[k, 0] - w_hat[k, 0], x_c[k, 1] - w_hat[k, 1], x_c[k, 2] - w_hat[k, 2]
+        dist = np.sqrt((e0 * e0 + e2 * e2) + e1 * e1)
+        scale = max(dist, 1e-12)
+        out_d[k] = dist
+        for a, e in ((0, e0), (1, e1), (2, e2)):
+            out_w[k, a], out_grad[k, a] = w_hat[k, a], e / scale
+            for b in range(3):
+                out_dw[k, a, b] = 0.0
+            if out_n.shape[0]:
+                out_n[k, a] = e / scale
 
 
 def witness_vector(channel: Channel, w: np.ndarray, w_hat: np.ndarray, dw_dx: np.ndarray,
@@ -302,61 +353,125 @@ def witness_vector(channel: Channel, w: np.ndarray, w_hat: np.ndarray, dw_dx: np
     ``hat_weights``: the channel's ``geodesic_weights`` of ŵ, when known.
     """
     gamma, dgamma = channel.geodesic_ratio(w, w_hat, hat_weights)
-    chord = w - w_hat
-    jac = gamma[:, None, None] * dw_dx + chord[:, :, None] * np.einsum("nj,njk->nk", dgamma, dw_dx)[:, None, :]
-    return gamma[:, None] * chord, jac
+    k = len(gamma)
+    vec, jac = np.empty((k, 3)), np.empty((k, 3, 3))
+    _witness_vectors(np.asarray(w, np.float64), np.asarray(w_hat, np.float64), np.asarray(dw_dx, np.float64),
+                     gamma, dgamma, vec, jac)
+    return vec, jac
+
+
+@numba.njit(cache=True)
+def _witness_vectors(w, w_hat, dw_dx, gamma, dgamma, vec, jac):
+    for p in range(w.shape[0]):
+        _witness_rows(w, w_hat, dw_dx, p, gamma[p], dgamma, p, vec.reshape(-1), jac.reshape(-1, 3), 3 * p)
+
+
+@numba.njit(cache=True, inline="always")
+def _witness_rows(w, w_hat, dw_dx, p, gamma, dgamma, t, out_value, out_grad, m):
+    """The three rows of :func:`witness_vector` of pair p (ratio γ, its gradient dgamma[t]) into
+    out_value[m:m + 3] and out_grad[m:m + 3]: γ(w − ŵ)ᵢ and γ ∂wᵢ/∂x + (w − ŵ)ᵢ (∂γ/∂w)ᵀ ∂w/∂x,
+    in numpy's order (its einsum sums the three terms of (∂γ/∂w)ᵀ ∂w/∂x left to right)."""
+    e0 = (dgamma[t, 0] * dw_dx[p, 0, 0] + dgamma[t, 1] * dw_dx[p, 1, 0]) + dgamma[t, 2] * dw_dx[p, 2, 0]
+    e1 = (dgamma[t, 0] * dw_dx[p, 0, 1] + dgamma[t, 1] * dw_dx[p, 1, 1]) + dgamma[t, 2] * dw_dx[p, 2, 1]
+    e2 = (dgamma[t, 0] * dw_dx[p, 0, 2] + dgamma[t, 1] * dw_dx[p, 1, 2]) + dgamma[t, 2] * dw_dx[p, 2, 2]
+    for i in range(3):
+        chord = w[p, i] - w_hat[p, i]
+        out_value[m + i] = gamma * chord
+        out_grad[m + i, 0] = gamma * dw_dx[p, i, 0] + chord * e0
+        out_grad[m + i, 1] = gamma * dw_dx[p, i, 1] + chord * e1
+        out_grad[m + i, 2] = gamma * dw_dx[p, i, 2] + chord * e2
 
 
 def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, float, float],
                      cfg: InteractionConfig) -> Rows:
-    """The r^d, r^x, r^n rows of the active pairs (eq. m-residuals, m-energy)."""
+    """The r^d, r^x, r^n rows of the active pairs (eq. m-residuals, m-energy), in that order.
+
+    r^d: every active pair, as the row β·r^d (its square is the term λ^d β² (r^d)²), whose
+    derivative (β + β′ r^d) ∇d keeps the kernel's own dependence on d: lagging β as a fixed
+    weight leaves the model's slope off by Σ ∂(β²)/∂d (r^d)², which rejects good steps.
+    r^x (three rows, :func:`witness_vector`) and r^n (where it is negative): only where the
+    demonstration is in contact range (β̄ > 0). One numba pass writes every row.
+    """
     k = len(pairs.norm)
     if k == 0:
         return Rows.empty()
-    lam_d, lam_x, lam_n = weights
-    q = pairs.query
-    d_hat = pairs.desired.d
-    b, db = beta_and_slope(d_hat, q.d, cfg.sigma_m, cfg.beta_max)
-    bb = beta_bar(d_hat, cfg.sigma_m)
+    q, desired = pairs.query, pairs.desired
+    tangential = np.flatnonzero(beta_bar(desired.d, cfg.sigma_m) > 0.0)
+    hat = desired.geodesic
+    gamma, dgamma = channel.geodesic_ratio(np.take(q.w, tangential, axis=0), np.take(desired.w, tangential, axis=0),
+                                           None if hat is None else tuple(np.take(h, tangential, axis=0) for h in hat))
+    n = k + 4 * len(tangential)
+    value, weight, grad_c, pair = np.empty(n), np.empty(n), np.empty((n, 3)), np.empty(n, np.intp)
+    n = _interaction_rows_into(q.d, q.grad_d, q.w, q.dw_dx, desired.d, desired.w, desired.n, pairs.x_c, pairs.norm,
+                               tangential, gamma, dgamma, *(float(v) for v in weights), float(cfg.sigma_m),
+                               float(cfg.beta_max), value, weight, grad_c, pair)
+    phi = channel_twist_factors(grad_c[:n], pair[:n], pairs.rot_c, pairs.x_w, pairs.origin_a,
+                                None if pairs.body_b == FIXED else pairs.pos_c)
+    return Rows(value[:n], weight[:n], phi, np.take(pairs.body_a, pair[:n]), np.full(n, pairs.body_b, dtype=np.intp))
 
-    # r^d: every active pair, as the row β·r^d (its square is the term λ^d β² (r^d)²), whose
-    # derivative (β + β′ r^d) ∇d keeps the kernel's own dependence on d: lagging β as a fixed
-    # weight leaves the model's slope off by Σ ∂(β²)/∂d (r^d)², which rejects good steps.
-    r_d = q.d - np.maximum(d_hat, 0.0)
-    value = [b * r_d]
-    weight = [pairs.norm * lam_d]
-    grad_c = [(b + db * r_d)[:, None] * q.grad_d]
-    index = [np.arange(k)]
 
-    # r^x, r^n: only where the demonstration is in contact range (β̄ > 0)
-    tangential = np.flatnonzero(bb > 0.0)
-    if len(tangential):
-        w_hat = np.take(pairs.desired.w, tangential, axis=0)
-        hat = pairs.desired.geodesic
-        vec, jac_x = witness_vector(channel, np.take(q.w, tangential, axis=0), w_hat,
-                                    np.take(q.dw_dx, tangential, axis=0),
-                                    None if hat is None else tuple(np.take(h, tangential, axis=0) for h in hat))
-        norm_t, bb_t = np.take(pairs.norm, tangential), np.take(bb, tangential)
-        value.append(vec.ravel())
-        weight.append(np.repeat(norm_t * lam_x * bb_t ** 2, 3))
-        grad_c.append(jac_x.reshape(-1, 3))
-        index.append(np.repeat(tangential, 3))
+@numba.njit(cache=True)
+def _interaction_rows_into(d, grad_d, w, dw_dx, d_hat, w_hat, n_hat, x_c, norm, tangential, gamma, dgamma, lam_d,
+                           lam_x, lam_n, sigma, beta_max, out_value, out_weight, out_grad, out_pair):
+    """The rows of :func:`interaction_rows` (returns their count): value, weight, gradient in
+    the channel frame and the pair of each, with numpy's arithmetic (its einsum sums n̂·(x − ŵ)
+    as (x + z) + y)."""
+    m = 0
+    for p in range(d.shape[0]):
+        b, slope = _beta_and_slope(d_hat[p], d[p], sigma, beta_max)
+        r = d[p] - _positive(d_hat[p])
+        out_value[m], out_weight[m], out_pair[m] = b * r, norm[p] * lam_d, p
+        for j in range(3):
+            out_grad[m, j] = (b + slope * r) * grad_d[p, j]
+        m += 1
+    for t in range(tangential.shape[0]):
+        p = tangential[t]
+        bb = _beta_bar(d_hat[p], sigma)
+        _witness_rows(w, w_hat, dw_dx, p, gamma[t], dgamma, t, out_value, out_grad, m)
+        for i in range(3):
+            out_weight[m + i], out_pair[m + i] = norm[p] * lam_x * (bb * bb), p
+        m += 3
+    for t in range(tangential.shape[0]):
+        p = tangential[t]
+        sign = -1.0 if d_hat[p] < 0.0 else 1.0
+        n0, n1, n2 = sign * n_hat[p, 0], sign * n_hat[p, 1], sign * n_hat[p, 2]
+        proj = (n0 * (x_c[p, 0] - w_hat[p, 0]) + n2 * (x_c[p, 2] - w_hat[p, 2])) + n1 * (x_c[p, 1] - w_hat[p, 1])
+        if proj < 0.0:
+            bb = _beta_bar(d_hat[p], sigma)
+            out_value[m], out_weight[m], out_pair[m] = proj, norm[p] * lam_n * (bb * bb), p
+            out_grad[m, 0], out_grad[m, 1], out_grad[m, 2] = n0, n1, n2
+            m += 1
+    return m
 
-        sign = np.where(np.take(d_hat, tangential) < 0.0, -1.0, 1.0)
-        n_hat = sign[:, None] * np.take(pairs.desired.n, tangential, axis=0)
-        proj = np.einsum("kj,kj->k", n_hat, np.take(pairs.x_c, tangential, axis=0) - w_hat)
-        below = np.flatnonzero(proj < 0.0)
-        value.append(np.take(proj, below))
-        weight.append(np.take(norm_t, below) * lam_n * np.take(bb_t, below) ** 2)
-        grad_c.append(np.take(n_hat, below, axis=0))
-        index.append(np.take(tangential, below))
 
-    idx = np.concatenate(index)
-    a_w = np.concatenate(grad_c) @ pairs.rot_c.T  # R_c ∂r/∂x_c, row-vector form
-    phi = twist_factors(a_w, np.take(pairs.x_w, idx, axis=0), np.take(pairs.origin_a, idx, axis=0),
-                        None if pairs.body_b == FIXED else pairs.pos_c)
-    return Rows(np.concatenate(value), np.concatenate(weight), phi, np.take(pairs.body_a, idx),
-                np.full(len(idx), pairs.body_b, dtype=np.intp))
+def channel_twist_factors(grad_c: np.ndarray, point: np.ndarray, rot_c: np.ndarray, x_w: np.ndarray,
+                          origin_a: np.ndarray, origin_b: np.ndarray | None) -> np.ndarray:
+    """``twist_factors(grad_c @ rot_c.T, x_w[point], origin_a[point], origin_b)``: the factors φ
+    of rows whose gradients ``grad_c`` (k, 3) are in the channel frame, at the points ``point``
+    (k,) of ``x_w`` (world) with body origins ``origin_a``; one pass without the gathered arrays.
+    The rotation repeats numpy's: OpenBLAS sums each entry as one FMA chain, except for a
+    single row (another kernel: numpy's own product then)."""
+    if len(grad_c) == 1:
+        return twist_factors(grad_c @ rot_c.T, x_w[point], origin_a[point], origin_b)
+    phi = np.empty((len(grad_c), 12))
+    _channel_twist_rows(grad_c, point, np.ascontiguousarray(rot_c, np.float64), x_w, origin_a,
+                        np.zeros(3) if origin_b is None else np.asarray(origin_b, np.float64), origin_b is not None, phi)
+    return phi
+
+
+@numba.njit(cache=True)
+def _channel_twist_rows(grad_c, point, rot_c, x_w, origin_a, origin_b, with_b, out):
+    for r in range(grad_c.shape[0]):
+        p = point[r]
+        a0, a1, a2 = _to_world_direction(grad_c[r, 0], grad_c[r, 1], grad_c[r, 2], rot_c)
+        if with_b:
+            _twist_row(a0, a1, a2, x_w[p, 0], x_w[p, 1], x_w[p, 2], origin_a[p, 0], origin_a[p, 1], origin_a[p, 2],
+                       origin_b[0], origin_b[1], origin_b[2], out, r)
+        else:
+            _twist_half(a0, a1, a2, x_w[p, 0] - origin_a[p, 0], x_w[p, 1] - origin_a[p, 1],
+                        x_w[p, 2] - origin_a[p, 2], out, r, 0)
+            for c in range(6, 12):
+                out[r, c] = 0.0
 
 
 def distance_rows(pairs: PairSet) -> Rows:
@@ -370,6 +485,5 @@ def signed_distance_rows(d: np.ndarray, grad_c: np.ndarray, x_w: np.ndarray, ori
     """Rows d + ∇dᵀδ of k points (world ``x_w`` on bodies ``body_a`` with origins ``origin_a``)
     against the channel body ``body_b`` at pose (R_c, τ_c); d (k,) m and its gradient
     ``grad_c`` (k, 3) in the channel frame. ``d`` becomes the rows' value (not copied)."""
-    a_w = grad_c @ rot_c.T
-    return Rows(d, np.ones(len(d)), twist_factors(a_w, x_w, origin_a, None if body_b == FIXED else pos_c), body_a,
-                np.full(len(d), body_b, dtype=np.intp))
+    phi = channel_twist_factors(grad_c, np.arange(len(d)), rot_c, x_w, origin_a, None if body_b == FIXED else pos_c)
+    return Rows(d, np.ones(len(d)), phi, body_a, np.full(len(d), body_b, dtype=np.intp))

@@ -21,19 +21,27 @@ import numba
 import numpy as np
 
 from otr_gym import robot
-from retarget.geometry import ProximityQuery, SDFChannel, _cell_inside, _trilinear_phi
+from retarget.geometry import (
+    PREFETCH_AHEAD,
+    ProximityQuery,
+    SDFChannel,
+    _cell_inside,
+    _cell_of,
+    _prefetch_phi_cell,
+    _trilinear_phi,
+)
 from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS, LinkFrames
-from retarget.probes import ProbeSet, _pose_in_frame, posed_in_frames, segment_argmin
+from retarget.probes import ProbeSet, _in_frame, _pose_in_frame, _posed_point
 from retarget.problem import ChannelTrack, Problem
 from retarget.residuals import (
     FIXED,
     PairSet,
     Rows,
+    Triples,
     _to_channel_point,
     _to_world_direction,
     _twist_row,
-    cross,
     far_field,
     interaction_rows,
     signed_distance_rows,
@@ -81,14 +89,6 @@ def candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray,
     return gap - problem.link_radius < problem.band_m
 
 
-def _take(q: ProximityQuery, index: np.ndarray) -> ProximityQuery:
-    """The answers of ``index`` (np.take: several times faster than fancy indexing of rows)."""
-    return ProximityQuery(d=np.take(q.d, index), w=np.take(q.w, index, axis=0),
-                          n=None if q.n is None else np.take(q.n, index, axis=0),
-                          grad_d=np.take(q.grad_d, index, axis=0), dw_dx=np.take(q.dw_dx, index, axis=0),
-                          in_band=np.take(q.in_band, index))
-
-
 def rows_take(rows: Rows, index: np.ndarray) -> Rows:
     return Rows(np.take(rows.value, index), np.take(rows.weight, index), np.take(rows.phi, index, axis=0),
                 np.take(rows.body_a, index), np.take(rows.body_b, index))
@@ -114,16 +114,47 @@ def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad
     close = np.flatnonzero(rows.value < margin)
     if len(close) == 0:
         return close
-    key = _group_keys(rows.phi, rows.body_a, channel, close)
-    order = np.argsort(key, kind="stable")
-    starts = np.flatnonzero(np.concatenate([[True], np.diff(key[order]) != 0]))
-    extreme = np.empty(len(close), dtype=bool)
-    _extreme_rows(rows.value, rows.phi, close[order], np.append(starts, len(close)), float(tilt_rad), _COS, _SIN,
-                  extreme)
-    return np.sort(close[order[extreme]])
+    chosen = np.zeros(len(rows), dtype=bool)
+    _choose_extreme_rows(rows.value, rows.phi, rows.body_a, np.asarray(channel, np.intp), close, float(tilt_rad), _COS,
+                         _SIN, chosen)
+    return np.flatnonzero(chosen)
 
 
 _COS, _SIN = np.cos(_ANGLES), np.sin(_ANGLES)
+
+
+@numba.njit(cache=True)
+def _choose_extreme_rows(value, phi, body, channel, close, tilt, cos, sin, chosen):
+    """chosen[r] ← row r of ``close`` is an extreme row of its group (``initial_constraints``):
+    the rows grouped by key in a stable sort, then ``_extreme_rows`` per group."""
+    key = _group_keys(phi, body, channel, close)
+    order = _stable_order(key)
+    starts = [0]
+    for i in range(1, order.shape[0]):
+        if key[order[i]] != key[order[i - 1]]:
+            starts.append(i)
+    starts.append(order.shape[0])
+    grouped = close[order]
+    extreme = np.empty(grouped.shape[0], np.bool_)
+    _extreme_rows(value, phi, grouped, np.array(starts), tilt, cos, sin, extreme)
+    for i in range(grouped.shape[0]):
+        chosen[grouped[i]] = extreme[i]
+
+
+@numba.njit(cache=True)
+def _stable_order(key):
+    """The permutation of numpy's stable argsort of small non-negative integer keys, by counting."""
+    lo = key.min()
+    start = np.zeros(key.max() - lo + 2, np.intp)
+    for k in key:
+        start[k - lo + 1] += 1
+    for i in range(1, start.shape[0]):
+        start[i] += start[i - 1]
+    order = np.empty(key.shape[0], np.intp)
+    for i in range(key.shape[0]):
+        order[start[key[i] - lo]] = i
+        start[key[i] - lo] += 1
+    return order
 
 
 @numba.njit(cache=True)
@@ -134,9 +165,16 @@ def _group_keys(phi, body, channel, close):
     for m in range(close.shape[0]):
         r = close[m]
         best, top = 0, phi[r, 0]
-        for j, v in ((1, phi[r, 1]), (2, phi[r, 2]), (3, -phi[r, 0]), (4, -phi[r, 1]), (5, -phi[r, 2])):
-            if v > top:
-                best, top = j, v
+        if phi[r, 1] > top:
+            best, top = 1, phi[r, 1]
+        if phi[r, 2] > top:
+            best, top = 2, phi[r, 2]
+        if -phi[r, 0] > top:
+            best, top = 3, -phi[r, 0]
+        if -phi[r, 1] > top:
+            best, top = 4, -phi[r, 1]
+        if -phi[r, 2] > top:
+            best = 5
         out[m] = (body[r] * 64 + channel[r]) * 32 + best
     return out
 
@@ -175,6 +213,7 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
     unit tangents, the 8 tilts ω (|ω| = ``tilt``) and the rows whose d + ω·φ[3:6], or d, is
     the group's smallest; ``out`` marks them. The arithmetic of the array form, sums in its
     order (reduceat's pairwise sums, the einsum's (x + z) + y)."""
+    tilt_w, best = np.empty((8, 3)), np.empty(9)  # a group's tilts ω / tilt, its smallest scores
     for g in range(bounds.shape[0] - 1):
         lo, hi = bounds[g], bounds[g + 1]
         # np.add.reduceat: the first row, plus numpy's pairwise sum of the others
@@ -195,13 +234,17 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
         n = max(np.sqrt(t10 * t10 + t11 * t11 + t12 * t12), 1e-12)
         t10, t11, t12 = t10 / n, t11 / n, t12 / n
         t20, t21, t22 = m1 * t12 - m2 * t11, m2 * t10 - m0 * t12, m0 * t11 - m1 * t10
-        best = np.full(9, np.inf)
+        for d in range(8):
+            tilt_w[d, 0] = cos[d] * t10 + sin[d] * t20
+            tilt_w[d, 1] = cos[d] * t11 + sin[d] * t21
+            tilt_w[d, 2] = cos[d] * t12 + sin[d] * t22
+        best[:] = np.inf
         for i in range(lo, hi):
             r = rows[i]
             best[0] = min(best[0], value[r])
             for d in range(8):
-                w0, w1, w2 = cos[d] * t10 + sin[d] * t20, cos[d] * t11 + sin[d] * t21, cos[d] * t12 + sin[d] * t22
-                score = value[r] + tilt * ((phi[r, 3] * w0 + phi[r, 5] * w2) + phi[r, 4] * w1)
+                score = value[r] + tilt * ((phi[r, 3] * tilt_w[d, 0] + phi[r, 5] * tilt_w[d, 2])
+                                           + phi[r, 4] * tilt_w[d, 1])
                 best[d + 1] = min(best[d + 1], score)
         for i in range(lo, hi):
             r = rows[i]
@@ -209,8 +252,8 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
             for d in range(8):
                 if hit:
                     break
-                w0, w1, w2 = cos[d] * t10 + sin[d] * t20, cos[d] * t11 + sin[d] * t21, cos[d] * t12 + sin[d] * t22
-                hit = value[r] + tilt * ((phi[r, 3] * w0 + phi[r, 5] * w2) + phi[r, 4] * w1) <= best[d + 1]
+                hit = value[r] + tilt * ((phi[r, 3] * tilt_w[d, 0] + phi[r, 5] * tilt_w[d, 2])
+                                         + phi[r, 4] * tilt_w[d, 1]) <= best[d + 1]
             out[i] = hit
 
 
@@ -248,6 +291,7 @@ class _RobotPairs:
     x_w: np.ndarray  # (k, 3)
     x_c: np.ndarray  # (k, 3)
     query: ProximityQuery
+    desired: Triples  # the demonstrated triples of ``probes``
 
 
 def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, fr: LinkFrames,
@@ -261,30 +305,28 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
     near_links = candidate_links(problem, track, centre_w, rot_c, pos_c)
     # area probes: near links, and links with a probe in contact range in the demonstration
     links = np.flatnonzero(near_links | targets.robot_links[c])
-    idx, x_w = problem.robot.posed_bodies(links, fr.rot, fr.pos)
     # distance of every area probe, or a lower bound (the band) where not queried
     probe_d = np.full(len(problem.robot), band)
     pairs = None
-    if len(idx):
-        x_c = to_channel_frame(x_w, rot_c, pos_c)
-        demo_active = targets.robot_active[c][idx]
-        sel = np.flatnonzero(near_channel(track, x_c, band) | demo_active)
-        q = track.channel.query(np.take(x_c, sel, axis=0), normals=False)
-        probe_d[idx[sel]] = q.d
-        active = np.flatnonzero(q.in_band | demo_active[sel])
-        a = sel[active]
+    probes = _probes_near(problem.robot, links, fr, track, rot_c, pos_c, band, targets.robot_active[c])
+    if probes is not None:
+        sel, x_w, x_c = probes
+        q = track.channel.query(x_c, normals=False)
+        probe_d[sel] = q.d
+        active = np.flatnonzero(q.in_band | targets.robot_active[c][sel])
         # Beyond the grid's band a pair active in the demonstration reads d = band with no
         # gradient: the distance to its demonstrated witness pulls it in instead (``far_field``),
         # for the interaction and the contact-state rows alike. Without it the G1's pelvis and right knee stayed 19–22 cm
         # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
-        x_a = np.take(x_c, a, axis=0)
-        pairs = _RobotPairs(c, rot_c, pos_c, idx[a], np.take(x_w, a, axis=0), x_a,
-                            far_field(_take(q, active), x_a, targets.robot[c].take(idx[a]), track.is_ground))
+        x_a = np.take(x_c, active, axis=0)
+        desired = targets.robot[c].take(sel[active])
+        pairs = _RobotPairs(c, rot_c, pos_c, sel[active], np.take(x_w, active, axis=0), x_a,
+                            far_field(q, active, x_a, desired, track.is_ground), desired)
         # Against the ground the hull vertices (guards) imply every area probe: skip those.
         if not track.is_ground:
             ib = np.flatnonzero(q.in_band & (q.d < check))
-            pts, body = sel[ib], problem.robot.body[idx[sel[ib]]]
-            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, pts, axis=0), np.take(x_c, pts, axis=0), body,
+            body = problem.robot.body[sel[ib]]
+            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, ib, axis=0), np.take(x_c, ib, axis=0), body,
                                     np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0),
                                     np.take(problem.surface_margin, body)), c)
     link_min = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
@@ -302,6 +344,42 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
     if len(gi):
         con.add(_guard_rows(problem, fr, track, rot_c, pos_c, guards, gi, check), c)
     return pairs, link_min
+
+
+def _probes_near(probes: ProbeSet, links: np.ndarray, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray,
+                 pos_c: np.ndarray, reach: float,
+                 demo_active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The probes of ``links`` (sorted) within the channel's bounds grown by ``reach``, or active
+    in the demonstration (``demo_active`` (P,)): their indices, world and channel-frame positions,
+    in order, by one numba pass with the arithmetic of ``ProbeSet.posed_bodies``,
+    ``to_channel_frame`` and ``near_channel``. None when the links carry no probe."""
+    n = int(np.sum(probes.offsets[links + 1] - probes.offsets[links]))
+    if n == 0:
+        return None
+    index, x_w, x_c = np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
+    k = _probes_near_into(probes.points, probes.offsets, np.asarray(links, np.intp), fr.rot, fr.pos,
+                          np.ascontiguousarray(rot_c, np.float64), np.asarray(pos_c, np.float64), track.is_ground,
+                          np.asarray(track.lower - reach, np.float64), np.asarray(track.upper + reach, np.float64),
+                          float(reach), demo_active, index, x_w, x_c)
+    return index[:k], x_w[:k], x_c[:k]
+
+
+@numba.njit(cache=True)
+def _probes_near_into(points, offsets, links, rot, pos, rot_c, pos_c, ground, lower, upper, reach, demo_active,
+                      out_index, out_w, out_c):
+    k = 0
+    for link in links:
+        for p in range(offsets[link], offsets[link + 1]):
+            w0, w1, w2 = _posed_point(points, p, link, rot, pos)
+            x0, x1, x2 = _to_channel_point(w0, w1, w2, rot_c, pos_c)
+            near = (x2 < reach if ground else (lower[0] < x0 < upper[0] and lower[1] < x1 < upper[1]
+                                               and lower[2] < x2 < upper[2]))
+            if near or demo_active[p]:
+                out_index[k] = p
+                out_w[k, 0], out_w[k, 1], out_w[k, 2] = w0, w1, w2
+                out_c[k, 0], out_c[k, 1], out_c[k, 2] = x0, x1, x2
+                k += 1
+    return k
 
 
 def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray,
@@ -418,7 +496,7 @@ def _guards_within_into(offsets, links, anchor, anchor_d, probe_d, margin, out):
     return k
 
 
-def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: list[_RobotPairs],
+def _robot_cost(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
                 counts: np.ndarray | None) -> tuple[list[Rows], int, np.ndarray]:
     """Interaction rows of the robot probes (eq. m-energy), f_ℓ/N_ℓ with N_ℓ the distinct active
     probes of link ℓ over all channels (or ``counts``). Returns rows, pair count, N_ℓ as counted."""
@@ -433,7 +511,7 @@ def _robot_cost(problem: Problem, targets: FrameTargets, fr: LinkFrames, pairs: 
         track = problem.channels[p.channel]
         body = problem.robot.body[p.probes]
         ps = PairSet(p.x_w, p.x_c, np.take(fr.pos, body, axis=0), body, track.body, p.rot_c, p.pos_c, p.query,
-                     targets.robot[p.channel].take(p.probes), norm_link[body])
+                     p.desired, norm_link[body])
         cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
     return cost, sum(len(p.probes) for p in pairs), link_counts
 
@@ -541,7 +619,7 @@ def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i:
         a = sel[active]
         a_c = np.take(o_c, a, axis=0)
         pairs.append((c, track, rot_c, pos_c, a, a_c,
-                      far_field(_take(q, active), a_c, targets.objects[i][c].take(a), track.is_ground)))
+                      far_field(q, active, a_c, targets.objects[i][c].take(a), track.is_ground)))
         ib = np.flatnonzero(q.in_band & (q.d < check))
         pts = sel[ib]
         con.add(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
@@ -595,7 +673,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
             robot_pairs.append(pairs)
     tm.lap("robot_channels")
 
-    cost, total_pairs, link_counts = _robot_cost(problem, targets, fr, robot_pairs, counts)
+    cost, total_pairs, link_counts = _robot_cost(problem, fr, robot_pairs, counts)
     if contact is None:
         contact = _select_contact_rows(problem, targets, robot_pairs)
     cost += _contact_state_rows(problem, fr, robot_pairs, contact)
@@ -674,12 +752,59 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, li
     pair_link, guard = _spheres_reach(np.ascontiguousarray(centre_w[links]), problem.link_radius[links], g_w, reach)
     if len(guard) == 0:
         return Rows.empty()
-    link = links[pair_link]
-    x = g_w[guard]
-    local = np.einsum("kji,kj->ki", fr.rot[link], x - fr.pos[link])  # Rᵀ(x − o)
-    d, grad, inside = problem.link_grids.distance(local, link)
-    keep = np.flatnonzero(inside & (d < reach))
-    return _object_link_rows(problem, fr, track, pos_c, link[keep], x[keep], d[keep], grad[keep])
+    grids = problem.link_grids
+    value, phi, link = np.empty(len(guard)), np.empty((len(guard), 12)), np.empty(len(guard), np.intp)
+    k = _object_guard_rows_into(links[pair_link], guard, g_w, fr.rot, fr.pos, grids.phi.ravel(), grids.origin,
+                                grids.inv_resolution, grids.upper, grids.strides, grids.offset, float(reach),
+                                problem.surface_margin, np.asarray(pos_c, np.float64), value, phi, link)
+    return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
+
+
+@numba.njit(cache=True)
+def _object_guard_rows_into(link, guard, g_w, rot, pos, phi, origin, inv_resolution, upper, strides, offset, reach,
+                            surface_margin, pos_c, out_value, out_phi, out_link):
+    """The rows of ``object_guard_rows`` (returns their count): guard point guard[q] (world
+    ``g_w``) in the frame of link[q], Rᵀ(x − o) summed as numpy's einsum sums it (left to right),
+    its distance in the link's grid, and the row where it lies inside closer than ``reach``."""
+    k = 0
+    for q in range(guard.shape[0]):
+        if q + PREFETCH_AHEAD < guard.shape[0]:
+            g = guard[q + PREFETCH_AHEAD]
+            _prefetch_link_cell(g_w[g, 0], g_w[g, 1], g_w[g, 2], link[q + PREFETCH_AHEAD], rot, pos, phi, origin,
+                                inv_resolution, upper, strides, offset)
+        b, g = link[q], guard[q]
+        val, g0, g1, g2, inside = _link_grid_distance(g_w[g, 0], g_w[g, 1], g_w[g, 2], b, rot, pos, phi, origin,
+                                                      inv_resolution, upper, strides, offset)
+        if inside and val < reach:
+            _object_link_row(val, g0, g1, g2, g_w[g, 0], g_w[g, 1], g_w[g, 2], b, rot, pos, pos_c, surface_margin,
+                             out_value, out_phi, out_link, k)
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, inline="always")
+def _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
+    """A world point in link b's frame (``_in_frame``) and ``GridStack.distance`` there: Φ, its gradient (zero outside the grid) and whether it lies
+    inside (outside, Φ of the cell of its projection, as the array form)."""
+    x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
+    r, fx, fy, fz, inside = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
+    val, g0, g1, g2 = _trilinear_phi(phi, r, strides[b, 0], strides[b, 1], fx, fy, fz)
+    scale = inv_resolution[b] * inside
+    return val, g0 * scale, g1 * scale, g2 * scale, inside
+
+
+@numba.njit(cache=True, inline="always")
+def _object_link_row(val, g0, g1, g2, w0, w1, w2, b, rot, pos, pos_c, surface_margin, out_value, out_phi, out_link,
+                     k):
+    """Row k: Φ − m_b ≥ 0 of an object point (world w) at link b's distance Φ with gradient g
+    (link frame): body A the object (origin ``pos_c``), body B the link; R_b g summed as numpy's
+    einsum sums three contiguous terms ((x + z) + y)."""
+    a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+    a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+    a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+    out_value[k] = val - surface_margin[b]
+    out_link[k] = b
+    _twist_row(a0, a1, a2, w0, w1, w2, pos_c[0], pos_c[1], pos_c[2], pos[b, 0], pos[b, 1], pos[b, 2], out_phi, k)
 
 
 def _spheres_reach(centre: np.ndarray, radius: np.ndarray, x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
@@ -702,15 +827,6 @@ def _spheres_reach_into(centre, radius, x, reach, out_s, out_p):
     return k
 
 
-def _object_link_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, pos_c: np.ndarray, link: np.ndarray,
-                      x: np.ndarray, d: np.ndarray, grad: np.ndarray) -> Rows:
-    """Rows d − m_link ≥ 0 of object points ``x`` (k, 3, world) at grid distances ``d`` (k,) with
-    gradients ``grad`` (k, 3, link frame) from ``link`` (k,): body A the object, body B the link."""
-    a_w = np.einsum("kij,kj->ki", fr.rot[link], grad)  # ∇d in the world
-    phi = twist_factors(a_w, x, np.broadcast_to(pos_c, x.shape), fr.pos[link])
-    return Rows(d - problem.surface_margin[link], np.ones(len(x)), phi, np.full(len(x), track.body), link)
-
-
 def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
                         track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
     """The deepest of each cluster of the object's surface points (``ChannelTrack.surface_guards``)
@@ -729,25 +845,70 @@ def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, 
     pair, pair_cl = sg.clusters_near((centre_w[links] - pos_c) @ rot_c, problem.link_radius[links] + reach)
     if len(pair_cl) == 0:
         return Rows.empty()
-    # the object as one more body after the links, so that one pass poses points into link frames
-    rot = np.concatenate([fr.rot, rot_c[None]])
-    pos = np.concatenate([fr.pos, pos_c[None]])
-    obj = len(fr.rot)
-    link = links[pair]
-    _, c_l = posed_in_frames(cl.centre[pair_cl], np.full(len(pair_cl), obj, np.intp), link, rot, pos)
-    d, _, inside = grids.distance(c_l, link)
-    near = np.flatnonzero(inside & (d - cl.radius[pair_cl] < reach))
-    if len(near) == 0:
-        return Rows.empty()
-    link, pair_cl = link[near], pair_cl[near]
-    idx = cl.points_of(pair_cl)
-    count = cl.offsets[pair_cl + 1] - cl.offsets[pair_cl]
-    point_link = np.repeat(link, count)
-    x, local = posed_in_frames(sg.points[idx], np.full(len(idx), obj, np.intp), point_link, rot, pos)
-    d, grad, inside = grids.distance(local, point_link)
-    deepest = segment_argmin(np.where(inside, d, np.inf), count)
-    deepest = deepest[d[deepest] < reach]
-    return _object_link_rows(problem, fr, track, pos_c, point_link[deepest], x[deepest], d[deepest], grad[deepest])
+    grids = problem.link_grids
+    n = len(pair_cl)
+    value, phi, link = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp)
+    k = _object_surface_rows_into(links[pair], pair_cl, cl.centre, cl.radius, cl.offsets, sg.points,
+                                  np.ascontiguousarray(rot_c, np.float64), np.asarray(pos_c, np.float64), fr.rot,
+                                  fr.pos, grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper,
+                                  grids.strides, grids.offset, float(reach), problem.surface_margin, value, phi, link)
+    return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
+
+
+@numba.njit(cache=True)
+def _object_surface_rows_into(link, cluster, centre, radius, offsets, points, rot_c, pos_c, rot, pos, phi, origin,
+                              inv_resolution, upper, strides, offset, reach, surface_margin, out_value, out_phi,
+                              out_link):
+    """The rows of ``object_surface_rows`` (returns their count): per (link, cluster) pair, the
+    cluster's centre in the link's grid with Φ − radius < reach, then its deepest point (the
+    first smallest Φ among the points inside the grid) if closer than ``reach``. Points are
+    posed as ``posed_in_frames`` poses them (the object a body at (``rot_c``, ``pos_c``))."""
+    k = 0
+    for q in range(cluster.shape[0]):
+        if q + PREFETCH_AHEAD < cluster.shape[0]:
+            p0, p1, p2 = _object_point(centre, cluster[q + PREFETCH_AHEAD], rot_c, pos_c)
+            _prefetch_link_cell(p0, p1, p2, link[q + PREFETCH_AHEAD], rot, pos, phi, origin, inv_resolution, upper,
+                                strides, offset)
+        b, c = link[q], cluster[q]
+        w0, w1, w2 = _object_point(centre, c, rot_c, pos_c)
+        val, _, _, _, inside = _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper,
+                                                   strides, offset)
+        if not (inside and val - radius[c] < reach):
+            continue
+        best_key = np.inf
+        start, end = offsets[c], offsets[c + 1]
+        for v in range(start, end):
+            if v + PREFETCH_AHEAD < end:
+                p0, p1, p2 = _object_point(points, v + PREFETCH_AHEAD, rot_c, pos_c)
+                _prefetch_link_cell(p0, p1, p2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset)
+            p0, p1, p2 = _object_point(points, v, rot_c, pos_c)
+            d, g0, g1, g2, inside = _link_grid_distance(p0, p1, p2, b, rot, pos, phi, origin, inv_resolution, upper,
+                                                        strides, offset)
+            key = d if inside else np.inf
+            if v == start or key < best_key:
+                best_key, best = key, (d, g0, g1, g2, p0, p1, p2)
+        d, g0, g1, g2, p0, p1, p2 = best
+        if d < reach:
+            _object_link_row(d, g0, g1, g2, p0, p1, p2, b, rot, pos, pos_c, surface_margin, out_value, out_phi,
+                             out_link, k)
+            k += 1
+    return k
+
+
+@numba.njit(cache=True, inline="always")
+def _object_point(points, i, rot_c, pos_c):
+    """Object-frame point i in the world, as ``posed_in_frames`` poses it."""
+    return (rot_c[0, 0] * points[i, 0] + rot_c[0, 1] * points[i, 1] + rot_c[0, 2] * points[i, 2] + pos_c[0],
+            rot_c[1, 0] * points[i, 0] + rot_c[1, 1] * points[i, 1] + rot_c[1, 2] * points[i, 2] + pos_c[1],
+            rot_c[2, 0] * points[i, 0] + rot_c[2, 1] * points[i, 1] + rot_c[2, 2] * points[i, 2] + pos_c[2])
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_link_cell(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
+    """Prefetch the cell of link b's grid that ``_link_grid_distance`` will read for world point w."""
+    x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
+    r, _, _, _, _ = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
+    _prefetch_phi_cell(phi, r, strides[b, 0], strides[b, 1])
 
 
 def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach: float) -> Rows:
@@ -766,57 +927,96 @@ def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach
     close = pairs[gap < reach]
     if len(close) == 0:
         return Rows.empty()
-    ordered = np.concatenate([close, close[:, ::-1]])
+    ordered = np.ascontiguousarray(np.concatenate([close, close[:, ::-1]]), np.intp)
     clusters, grids, vg = problem.self_clusters, problem.link_grids, problem.self_points
-    # one pass over (pair, cluster, vertex) in that order; a cluster or vertex outside b's grid
-    # is dropped before its cell is read
-    first = clusters.offsets[clusters.body_offsets[ordered[:, 0]]]
-    bound = int(np.sum(clusters.offsets[clusters.body_offsets[ordered[:, 0] + 1]] - first))
+    grid = (grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset)
+    # first the clusters within reach, then their vertices: a cluster or vertex outside b's grid is
+    # dropped before its cell is read, and the outputs are sized by the vertices that can matter
+    first = clusters.body_offsets[ordered[:, 0]]
+    bound = int(np.sum(clusters.body_offsets[ordered[:, 0] + 1] - first))
+    pair, cluster = np.empty(bound, np.intp), np.empty(bound, np.intp)
+    n = _self_mesh_clusters(ordered, clusters.centre, clusters.radius, clusters.body_offsets, fr.rot, fr.pos,
+                            float(reach), *grid, grids.box_centre, grids.box_radius, pair, cluster)
+    pair, cluster = pair[:n], cluster[:n]
+    bound = int(np.sum(clusters.offsets[cluster + 1] - clusters.offsets[cluster]))
     link_a, link_b = np.empty(bound, np.intp), np.empty(bound, np.intp)
     value, phi = np.empty(bound), np.empty((bound, 12))
-    k = _self_mesh_points(np.ascontiguousarray(ordered, np.intp), clusters.centre, clusters.radius, clusters.offsets,
-                          clusters.body_offsets, vg.points, fr.rot, fr.pos, float(reach), grids.phi.ravel(),
-                          grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset,
+    k = _self_mesh_points(ordered, pair, cluster, clusters.offsets, vg.points, fr.rot, fr.pos, float(reach), *grid,
                           problem.surface_margin, link_a, link_b, value, phi)
     return Rows(value[:k], np.ones(k), phi[:k], link_a[:k], link_b[:k])
 
 
 @numba.njit(cache=True)
-def _self_mesh_points(ordered, centre, radius, offsets, body_offsets, points, rot, pos, reach, phi, origin,
-                      inv_resolution, upper, strides, offset, surface_margin, out_a, out_b, out_value, out_phi):
-    """The rows of ``self_mesh_rows``: per ordered pair (a, b), each cluster of a whose centre
-    lies in b's grid with Φ − radius < reach, then each of its vertices x in b's grid with
-    Φ < reach, as the row Φ − m_a − m_b with the factors φ of ``twist_factors`` for the world
-    gradient R_b ∇Φ; returns the count. Point by point the arithmetic of ``posed_in_frames``,
-    ``GridStack.distance`` and ``twist_factors``, without their intermediate arrays, and a point
-    outside b's grid is dropped before any grid node is read. R_b ∇Φ is summed as numpy's einsum
-    sums it on our builds ((x + z) + y), so that references did not move by a bit."""
+def _self_mesh_clusters(ordered, centre, radius, body_offsets, rot, pos, reach, phi, origin, inv_resolution, upper,
+                        strides, offset, box_centre, box_radius, out_pair, out_cluster):
+    """The clusters of ``self_mesh_rows`` whose vertices are to be tested: per ordered pair
+    (a, b) (index p), each cluster c of a whose centre lies in b's grid with Φ − radius < reach,
+    as (p, c) in that order; returns their count. Each link's cluster centres are posed in the
+    world once; a centre farther from b's grid box centre than its half diagonal (``box_centre``,
+    ``box_radius``, grid frame), plus a micrometre for rounding, lies outside b's grid: it is
+    dropped without being posed into b's frame."""
+    world = np.empty((centre.shape[0], 3))
+    posed = np.zeros(body_offsets.shape[0] - 1, np.bool_)
     k = 0
     for p in range(ordered.shape[0]):
         a, b = ordered[p, 0], ordered[p, 1]
+        if not posed[a]:
+            for c in range(body_offsets[a], body_offsets[a + 1]):
+                world[c, 0], world[c, 1], world[c, 2] = _posed_point(centre, c, a, rot, pos)
+            posed[a] = True
+        g0, g1, g2 = _posed_point(box_centre, b, b, rot, pos)
+        reach_sq = (box_radius[b] + 1e-6) ** 2
         inv = inv_resolution[b]
         o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
         up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
         sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
         for c in range(body_offsets[a], body_offsets[a + 1]):
-            inside, val, _, _, _, _, _, _ = _phi_in_grid(centre, c, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
-                                                         up0, up1, up2, sx, sy, sz)
-            if not (inside and val - radius[c] < reach):
+            e0, e1, e2 = world[c, 0] - g0, world[c, 1] - g1, world[c, 2] - g2
+            if e0 * e0 + e1 * e1 + e2 * e2 > reach_sq:
                 continue
-            for v in range(offsets[c], offsets[c + 1]):
-                inside, val, g0, g1, g2, w0, w1, w2 = _phi_in_grid(points, v, a, b, rot, pos, phi, offset[b], o0, o1,
-                                                                   o2, inv, up0, up1, up2, sx, sy, sz)
-                if not (inside and val < reach):
-                    continue
-                g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
-                a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
-                a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
-                a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
-                out_a[k], out_b[k] = a, b
-                out_value[k] = val - surface_margin[a] - surface_margin[b]
-                _twist_row(a0, a1, a2, w0, w1, w2, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
-                           out_phi, k)
+            x0, x1, x2 = _in_frame(world[c, 0], world[c, 1], world[c, 2], b, rot, pos)
+            inside, val, _, _, _ = _phi_at(x0, x1, x2, phi, offset[b], o0, o1, o2, inv, up0, up1, up2, sx, sy, sz)
+            if inside and val - radius[c] < reach:
+                out_pair[k], out_cluster[k] = p, c
                 k += 1
+    return k
+
+
+@numba.njit(cache=True)
+def _self_mesh_points(ordered, pair, cluster, offsets, points, rot, pos, reach, phi, origin, inv_resolution, upper,
+                      strides, offset, surface_margin, out_a, out_b, out_value, out_phi):
+    """The rows of ``self_mesh_rows``: for each (pair p = (a, b), cluster c of a) of
+    ``_self_mesh_clusters``, each vertex x of c in b's grid with Φ < reach, as the row
+    Φ − m_a − m_b with the factors φ of ``twist_factors`` for the world gradient R_b ∇Φ; returns
+    the count. Point by point the arithmetic of ``posed_in_frames``, ``GridStack.distance`` and
+    ``twist_factors``, without their intermediate arrays. R_b ∇Φ is summed as numpy's einsum
+    sums it on our builds ((x + z) + y), so that references did not move by a bit."""
+    k = 0
+    for q in range(pair.shape[0]):
+        a, b = ordered[pair[q], 0], ordered[pair[q], 1]
+        inv = inv_resolution[b]
+        o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
+        up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
+        sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
+        c = cluster[q]
+        end = offsets[c + 1]
+        for v in range(offsets[c], end):
+            if v + PREFETCH_AHEAD < end:
+                _prefetch_point_cell(points, v + PREFETCH_AHEAD, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
+                                     up0, up1, up2, sx, sy, sz)
+            inside, val, g0, g1, g2, w0, w1, w2 = _phi_in_grid(points, v, a, b, rot, pos, phi, offset[b], o0, o1,
+                                                               o2, inv, up0, up1, up2, sx, sy, sz)
+            if not (inside and val < reach):
+                continue
+            g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
+            a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+            a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+            a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+            out_a[k], out_b[k] = a, b
+            out_value[k] = val - surface_margin[a] - surface_margin[b]
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
+                       out_phi, k)
+            k += 1
     return k
 
 
@@ -826,14 +1026,34 @@ def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1
     strides s, first row row0): whether it lies inside, then Φ and its partials per cell width
     (unread when outside) and its world position."""
     w0, w1, w2, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    inside, val, g0, g1, g2 = _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz)
+    return inside, val, g0, g1, g2, w0, w1, w2
+
+
+@numba.njit(cache=True, inline="always")
+def _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """A point x in a grid's frame (grid as ``_phi_in_grid``): whether it lies inside, then Φ and
+    its partials per cell width (unread when outside)."""
     u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
     if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
-        return False, 0.0, 0.0, 0.0, 0.0, w0, w1, w2
+        return False, 0.0, 0.0, 0.0, 0.0
     ix, fx = _cell_inside(u0, up0)
     iy, fy = _cell_inside(u1, up1)
     iz, fz = _cell_inside(u2, up2)
     val, g0, g1, g2 = _trilinear_phi(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
-    return True, val, g0, g1, g2, w0, w1, w2
+    return True, val, g0, g1, g2
+
+
+@numba.njit(cache=True, inline="always")
+def _prefetch_point_cell(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """Prefetch the cell of b's grid that ``_phi_in_grid`` will read for point v (same arguments)."""
+    _, _, _, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+    if 0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2:
+        ix, _ = _cell_inside(u0, up0)
+        iy, _ = _cell_inside(u1, up1)
+        iz, _ = _cell_inside(u2, up2)
+        _prefetch_phi_cell(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy)
 
 
 #: The root link (pelvis): its origin is the floating base's.
@@ -862,10 +1082,25 @@ def base_step_rows(problem: Problem, state: SolverState, t: int, fr: LinkFrames)
 def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:
     """Capsule pairs closer than ``margin``: d + n·(ẋ_a − ẋ_b) rows (n from b to a)."""
     sc = problem.kin.self_collision.distances(fr, within=margin)
-    close = sc.dist < margin
-    la, lb, n = sc.link_a[close], sc.link_b[close], sc.normal[close]
-    # the distance's rate is n·(ẋ_a − ẋ_b) at the surface points (the radii lie along n)
-    phi = np.concatenate([n, cross(sc.point_a[close] - fr.pos[la], n), -n, -cross(sc.point_b[close] - fr.pos[lb], n)],
-                         axis=1)
-    return Rows(sc.dist[close], np.ones(len(la)), phi, la, lb)
+    close = np.flatnonzero(sc.dist < margin)
+    phi = np.empty((len(close), 12))
+    _capsule_rows(sc.point_a, sc.point_b, sc.normal, sc.link_a, sc.link_b, fr.pos, close, phi)
+    return Rows(sc.dist[close], np.ones(len(close)), phi, sc.link_a[close], sc.link_b[close])
+
+
+@numba.njit(cache=True)
+def _capsule_rows(point_a, point_b, normal, link_a, link_b, pos, close, out):
+    """φ of the capsule pairs ``close``: the distance's rate is n·(ẋ_a − ẋ_b) at the surface
+    points (the radii lie along n), φ = (n, (p_a − o_a) × n, −n, −((p_b − o_b) × n)): the
+    second cross product negated after it is computed, as the array form had it."""
+    for r in range(close.shape[0]):
+        k = close[r]
+        n0, n1, n2 = normal[k, 0], normal[k, 1], normal[k, 2]
+        a, b = link_a[k], link_b[k]
+        u0, u1, u2 = point_a[k, 0] - pos[a, 0], point_a[k, 1] - pos[a, 1], point_a[k, 2] - pos[a, 2]
+        v0, v1, v2 = point_b[k, 0] - pos[b, 0], point_b[k, 1] - pos[b, 1], point_b[k, 2] - pos[b, 2]
+        out[r, 0], out[r, 1], out[r, 2] = n0, n1, n2
+        out[r, 3], out[r, 4], out[r, 5] = u1 * n2 - u2 * n1, u2 * n0 - u0 * n2, u0 * n1 - u1 * n0
+        out[r, 6], out[r, 7], out[r, 8] = -n0, -n1, -n2
+        out[r, 9], out[r, 10], out[r, 11] = -(v1 * n2 - v2 * n1), -(v2 * n0 - v0 * n2), -(v0 * n1 - v1 * n0)
 

@@ -36,10 +36,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from retarget.kinematics import LinkFrames
-from retarget.residuals import FIXED, Rows, twist_factors
+from retarget.residuals import FIXED, Rows, _twist_half
 
 
 @dataclass(frozen=True)
@@ -213,13 +214,37 @@ def stance_rows(targets: StanceTargets, frames: LinkFrames, weight: float) -> Ro
     """Rows r = x(q) − target for every held coordinate (see the module doc for the weights)."""
     if len(targets.link) == 0:
         return Rows.empty()
-    link = targets.link
-    x_w = np.einsum("kij,kj->ki", frames.rot[link], targets.points) + frames.pos[link]
-    held = np.isfinite(targets.target_w)  # (k, 3)
-    point, axis = np.nonzero(held)
-    per_foot = np.bincount(link[point], minlength=int(link.max()) + 1)  # rows per foot link
-    a_w = np.eye(3)[axis]
-    phi = twist_factors(a_w, x_w[point], frames.pos[link[point]], None)
-    value = x_w[point, axis] - targets.target_w[point, axis]
-    weights = weight * targets.gain[point] / per_foot[link[point]]
-    return Rows(value, weights, phi, link[point], np.full(len(point), FIXED, np.intp))
+    n = int(np.count_nonzero(np.isfinite(targets.target_w)))
+    value, weights, phi, link = np.empty(n), np.empty(n), np.empty((n, 12)), np.empty(n, np.intp)
+    _stance_rows_into(targets.link, targets.points, targets.target_w, targets.gain, frames.rot, frames.pos,
+                      float(weight), value, weights, phi, link)
+    return Rows(value, weights, phi, link, np.full(n, FIXED, np.intp))
+
+
+@numba.njit(cache=True)
+def _stance_rows_into(link, points, target_w, gain, rot, pos, weight, out_value, out_weight, out_phi, out_link):
+    """The rows of ``stance_rows``, one per held coordinate (point, then axis): the point posed
+    as numpy's einsum sums R p ((x + z) + y, then the origin), x − target, weight × gain over the
+    link's count of held coordinates, and φ = (e_axis, (x − o) × e_axis, 0)."""
+    per_link = np.zeros(rot.shape[0], np.int64)
+    for k in range(link.shape[0]):
+        for a in range(3):
+            if np.isfinite(target_w[k, a]):
+                per_link[link[k]] += 1
+    m = 0
+    for k in range(link.shape[0]):
+        b = link[k]
+        x = np.empty(3)
+        for i in range(3):
+            x[i] = ((rot[b, i, 0] * points[k, 0] + rot[b, i, 2] * points[k, 2]) + rot[b, i, 1] * points[k, 1]) + pos[b, i]
+        for a in range(3):
+            if not np.isfinite(target_w[k, a]):
+                continue
+            out_value[m] = x[a] - target_w[k, a]
+            out_weight[m] = weight * gain[k] / per_link[b]
+            out_link[m] = b
+            _twist_half(1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0, x[0] - pos[b, 0],
+                        x[1] - pos[b, 1], x[2] - pos[b, 2], out_phi, m, 0)
+            for c in range(6, 12):
+                out_phi[m, c] = 0.0
+            m += 1
