@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import warnings
 from dataclasses import dataclass, replace
+from functools import cached_property
 from pathlib import Path
 
 import igl
@@ -52,8 +53,10 @@ class TriMesh:
             h.update(np.float64(self.shell_m).tobytes())
         return h.hexdigest()
 
-    @property
+    @cached_property
     def bounds(self) -> np.ndarray:
+        """(2, 3) lower and upper corners; cached: per-frame code (substitutes' demonstrated
+        triples and unit gaps) asks every frame."""
         return np.stack([self.vertices.min(0), self.vertices.max(0)])
 
     @property

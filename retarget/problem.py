@@ -221,6 +221,11 @@ class Problem:
     unit_surface: ProbeSet
     unit_of_vertex: np.ndarray
 
+    @cached_property
+    def num_surface_units(self) -> int:
+        """Contact units that have human surface (the first of ``contact_units``' numbering)."""
+        return int(self.unit_of_vertex.max()) + 1
+
     @property
     def num_frames(self) -> int:
         return int(self.part_pos_w.shape[0])

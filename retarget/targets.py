@@ -92,7 +92,7 @@ def unit_gaps(problem: Problem, track: ChannelTrack, surface_w: np.ndarray, rot:
     probes sample its parts too sparsely for it: on OMOMO's table the person's forearm comes
     within 19 mm of the top where its sources stay at 28 mm, so the forearm was held off as
     "not touching" and object recall lost 66 frames."""
-    gap = np.full(int(problem.unit_of_vertex.max()) + 1, band)
+    gap = np.full(problem.num_surface_units, band)
     x_c = to_channel_frame(surface_w, rot, pos)
     if track.substitution is not None:
         channel = track.substitution.demonstrated
