@@ -47,6 +47,7 @@ from scipy.spatial.distance import cdist
 
 from otr_gym.io import save_npz
 from retarget.distance_grid import grid_signed_distance, node_positions
+from retarget.jit import helper, inlined
 from retarget.meshes import InvalidMeshError, TriMesh, load_mesh, object_mesh
 
 #: Bumped whenever the content or layout of cached grids changes.
@@ -269,7 +270,7 @@ def _prefetch(typingctx, ary, index):
     return sig, codegen
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _prefetch_cell(values, r, sx, sy):
     """Prefetch the 8 corner rows of the cell whose lower node is row r of ``values`` (M, C):
     four pairs of adjacent rows (z neighbours), each pair's first and last element."""
@@ -279,7 +280,7 @@ def _prefetch_cell(values, r, sx, sy):
         _prefetch(values, (r + o + 1, last))
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _prefetch_phi_cell(phi, r, sx, sy):
     """``_prefetch_cell`` of a flat Φ table (M,)."""
     for o in (0, sy, sx, sx + sy):
@@ -317,13 +318,13 @@ def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, o
             jac[i, k, 2] = gz * scale
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset):
     """Point i's cell in its grid grid[i] (arguments as ``_trilinear_kernel``): see ``_cell_of``."""
     return _cell_of(x[i, 0], x[i, 1], x[i, 2], grid[i], origin, inv_resolution, upper, strides, offset)
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _cell_of(x0, x1, x2, g, origin, inv_resolution, upper, strides, offset):
     """The cell of point x in grid g (tables as ``_trilinear_kernel``'s): the row of its lower
     node, the position in the cell (fx, fy, fz) in [0, 1], and whether x lies within the grid
@@ -334,7 +335,7 @@ def _cell_of(x0, x1, x2, g, origin, inv_resolution, upper, strides, offset):
     return offset[g] + ix * strides[g, 0] + iy * strides[g, 1] + iz * strides[g, 2], fx, fy, fz, ok_x and ok_y and ok_z
 
 
-@numba.njit(cache=True)
+@helper
 def _cell_axis(x, origin, inv_resolution, upper):
     """Along one axis: the cell's lower node index, the position in the cell in [0, 1], and
     whether x lies within the grid (outside, the cell of the projection)."""
@@ -343,7 +344,7 @@ def _cell_axis(x, origin, inv_resolution, upper):
     return c, f, u >= 0.0 and u <= upper
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _cell_inside(u, upper):
     """Along one axis, for a grid coordinate u: the cell's lower node index and the position in
     the cell in [0, 1] (a u outside [0, upper] gets the cell of its projection)."""
@@ -351,7 +352,7 @@ def _cell_inside(u, upper):
     return int(c), min(max(u - c, 0.0), 1.0)
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _trilinear_phi(phi, r, sx, sy, fx, fy, fz):
     """One channel of :func:`_trilinear_kernel` at the cell whose lower node is row r (node
     strides sx, sy, 1) and position (fx, fy, fz) in it: the value and its partials along x, y,
@@ -532,10 +533,12 @@ def _neighbours(x, table, origin, inv_resolution, upper, strides, out):
     for n in range(x.shape[0]):
         if n + PREFETCH_AHEAD < x.shape[0]:
             _prefetch(table, (_nearest_row(x, n + PREFETCH_AHEAD, origin, inv_resolution, upper, strides), 0))
-        out[n] = table[_nearest_row(x, n, origin, inv_resolution, upper, strides)]
+        row = _nearest_row(x, n, origin, inv_resolution, upper, strides)
+        for j in range(table.shape[1]):  # element-wise: a row assignment compiles numba's shape-error formatting
+            out[n, j] = table[row, j]
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _nearest_row(x, n, origin, inv_resolution, upper, strides):
     """The row of the grid node nearest to x[n] (its index per axis rounded half to even and
     clipped to the grid, then the strides)."""
@@ -793,7 +796,7 @@ def _into_band(val: np.ndarray, jac: np.ndarray, inside: np.ndarray, band: float
     below the band, else the band (N,), and that mask (N,); the rows of their Jacobian ``jac``
     (N, ·) are zeroed in place outside it (multiplied by 0.0, as by the mask)."""
     d, in_band = np.empty(len(val)), np.empty(len(val), dtype=bool)
-    _into_band_kernel(val, jac, inside, float(band), d, in_band)
+    _into_band_kernel(np.ascontiguousarray(val), jac, inside, float(band), d, in_band)
     return d, in_band
 
 

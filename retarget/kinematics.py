@@ -23,6 +23,7 @@ import pinocchio as pin
 
 from otr_gym import robot
 from otr_gym.robot_geometry import collision_capsules
+from retarget.jit import helper
 
 NUM_LINKS = len(robot.BODY_NAMES)
 
@@ -213,7 +214,7 @@ def _posed(sc: SelfCollision, fr: LinkFrames, p: np.ndarray) -> np.ndarray:
     return np.einsum("kij,kj->ki", fr.rot[sc.link], p) + fr.pos[sc.link]
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _dot3(x0, x1, x2, y0, y1, y2):
     """x·y summed as numpy's einsum sums three terms on our builds: (x₀y₀ + x₂y₂) + x₁y₁."""
     return (x0 * y0 + x2 * y2) + x1 * y1

@@ -26,6 +26,7 @@ from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
 from retarget.geometry import GeometryConfig, sample_surface
 from retarget.human_surface import HumanSurface
+from retarget.jit import inlined
 from retarget.meshes import TriMesh, as_trimesh
 
 
@@ -163,7 +164,7 @@ def _pose_into(points, body, frame, rot, pos, out_w, out_f):
             out_f[k, r] = rot[f, 0, r] * d0 + rot[f, 1, r] * d1 + rot[f, 2, r] * d2
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _pose_in_frame(points, i, body, frame, rot, pos):
     """Point i of ``points`` on ``body``: its world position and its position in the frame of
     ``frame``, as six scalars (the arithmetic of :func:`_pose_into`)."""
@@ -171,7 +172,7 @@ def _pose_in_frame(points, i, body, frame, rot, pos):
     return (w0, w1, w2) + _in_frame(w0, w1, w2, frame, rot, pos)
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _posed_point(points, i, body, rot, pos):
     """Point i of ``points`` (frame of ``body``) in the world (the arithmetic of :func:`_pose_into`)."""
     return (rot[body, 0, 0] * points[i, 0] + rot[body, 0, 1] * points[i, 1] + rot[body, 0, 2] * points[i, 2] + pos[body, 0],
@@ -179,7 +180,7 @@ def _posed_point(points, i, body, rot, pos):
             rot[body, 2, 0] * points[i, 0] + rot[body, 2, 1] * points[i, 1] + rot[body, 2, 2] * points[i, 2] + pos[body, 2])
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _in_frame(w0, w1, w2, frame, rot, pos):
     """World point w in the frame of ``frame``, Rᵀ(w − o) summed left to right (the arithmetic of
     :func:`_pose_into`, and of numpy's einsum "kji,kj->ki")."""

@@ -32,6 +32,7 @@ from numba import types
 from numba.extending import intrinsic
 
 from retarget.geometry import Channel, ProximityQuery
+from retarget.jit import helper, inlined
 
 #: Body index of things that never move (ground, static furniture): no decision variable.
 FIXED = -1
@@ -99,19 +100,19 @@ def beta_and_slope(d_hat: np.ndarray, d: np.ndarray, sigma: float, beta_max: flo
     return b, slope
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _positive(x):
     """(x)₊, as np.maximum(x, 0.0)."""
     return x if x > 0.0 else 0.0
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _beta_bar(d_hat, sigma):
     b = _positive(1.0 - _positive(d_hat) / sigma)
     return b * b
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _beta_and_slope(d_hat, d, sigma, beta_max):
     h = _positive(d_hat)
     b = _positive(1.0 - min(h, d) / sigma)
@@ -165,7 +166,7 @@ def _fma(typingctx, a, b, c):
     return sig, codegen
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _to_channel_point(x0, x1, x2, rot_c, pos_c):
     """:func:`to_channel_frame` of one point in a numba kernel, bit for bit: numpy's (k, 3) @ (3, 3)
     goes to OpenBLAS, whose kernel sums each entry as one FMA chain (checked for 1 to 5000 rows)."""
@@ -175,7 +176,7 @@ def _to_channel_point(x0, x1, x2, rot_c, pos_c):
             _fma(d2, rot_c[2, 2], _fma(d1, rot_c[1, 2], d0 * rot_c[0, 2])))
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _to_world_direction(g0, g1, g2, rot_c):
     """g @ R_cᵀ (a channel-frame gradient turned to the world) of one row, as numpy computes it
     (see :func:`_to_channel_point`)."""
@@ -253,19 +254,19 @@ def _twist_factors(a, x, origin_a, origin_b, with_b, out):
                        origin_a[ia, 2], origin_b[ib, 0], origin_b[ib, 1], origin_b[ib, 2], out, k)
         else:
             _twist_half(a[k, 0], a[k, 1], a[k, 2], x[k, 0] - origin_a[ia, 0], x[k, 1] - origin_a[ia, 1],
-                        x[k, 2] - origin_a[ia, 2], out, k, 0)
+                        x[k, 2] - origin_a[ia, 2], out, k, np.int64(0))
             for c in range(6, 12):
                 out[k, c] = 0.0
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _twist_row(a0, a1, a2, x0, x1, x2, oa0, oa1, oa2, ob0, ob1, ob2, out, k):
     """Row k of ``twist_factors`` with both bodies moving: (a, (x − o_A) × a, −a, −(x − o_B) × a)."""
-    _twist_half(a0, a1, a2, x0 - oa0, x1 - oa1, x2 - oa2, out, k, 0)
-    _twist_half(-a0, -a1, -a2, x0 - ob0, x1 - ob1, x2 - ob2, out, k, 6)
+    _twist_half(a0, a1, a2, x0 - oa0, x1 - oa1, x2 - oa2, out, k, np.int64(0))
+    _twist_half(-a0, -a1, -a2, x0 - ob0, x1 - ob1, x2 - ob2, out, k, np.int64(6))
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _twist_half(a0, a1, a2, r0, r1, r2, out, k, col):
     """out[k, col:col + 6] = (a, r × a)."""
     out[k, col], out[k, col + 1], out[k, col + 2] = a0, a1, a2
@@ -309,7 +310,8 @@ def far_field(q: ProximityQuery, index: np.ndarray, x_c: np.ndarray, desired: Tr
     k = len(index)
     d, w, grad, dw, in_band = np.empty(k), np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 3, 3)), np.empty(k, bool)
     n = np.empty((k if q.n is not None else 0, 3))
-    _far_field_into(q.d, q.w, q.grad_d, q.dw_dx, q.in_band, np.zeros((0, 3)) if q.n is None else q.n,
+    _far_field_into(q.d, np.ascontiguousarray(q.w), np.ascontiguousarray(q.grad_d), np.ascontiguousarray(q.dw_dx),
+                    q.in_band, np.zeros((0, 3)) if q.n is None else q.n,
                     np.asarray(index, np.intp), x_c, desired.w, is_ground, d, w, grad, dw, in_band, n)
     return ProximityQuery(d=d, w=w, n=None if q.n is None else n, grad_d=grad, dw_dx=dw, in_band=in_band)
 
@@ -366,7 +368,7 @@ def _witness_vectors(w, w_hat, dw_dx, gamma, dgamma, vec, jac):
         _witness_rows(w, w_hat, dw_dx, p, gamma[p], dgamma, p, vec.reshape(-1), jac.reshape(-1, 3), 3 * p)
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _witness_rows(w, w_hat, dw_dx, p, gamma, dgamma, t, out_value, out_grad, m):
     """The three rows of :func:`witness_vector` of pair p (ratio γ, its gradient dgamma[t]) into
     out_value[m:m + 3] and out_grad[m:m + 3]: γ(w − ŵ)ᵢ and γ ∂wᵢ/∂x + (w − ŵ)ᵢ (∂γ/∂w)ᵀ ∂w/∂x,
@@ -416,7 +418,7 @@ def _interaction_rows_into(d, grad_d, w, dw_dx, d_hat, w_hat, n_hat, x_c, norm, 
     """The rows of :func:`interaction_rows` (returns their count): value, weight, gradient in
     the channel frame and the pair of each, with numpy's arithmetic (its einsum sums n̂·(x − ŵ)
     as (x + z) + y)."""
-    m = 0
+    m = np.int64(0)  # not a literal 0: _witness_rows would compile twice
     for p in range(d.shape[0]):
         b, slope = _beta_and_slope(d_hat[p], d[p], sigma, beta_max)
         r = d[p] - _positive(d_hat[p])
@@ -454,7 +456,8 @@ def channel_twist_factors(grad_c: np.ndarray, point: np.ndarray, rot_c: np.ndarr
     if len(grad_c) == 1:
         return twist_factors(grad_c @ rot_c.T, x_w[point], origin_a[point], origin_b)
     phi = np.empty((len(grad_c), 12))
-    _channel_twist_rows(grad_c, point, np.ascontiguousarray(rot_c, np.float64), x_w, origin_a,
+    # writeable C copies of the small pose arrays: a read-only or strided one would compile another kernel
+    _channel_twist_rows(grad_c, point, np.array(rot_c, np.float64), x_w, np.array(origin_a, np.float64, order="C"),
                         np.zeros(3) if origin_b is None else np.asarray(origin_b, np.float64), origin_b is not None, phi)
     return phi
 
@@ -469,7 +472,7 @@ def _channel_twist_rows(grad_c, point, rot_c, x_w, origin_a, origin_b, with_b, o
                        origin_b[0], origin_b[1], origin_b[2], out, r)
         else:
             _twist_half(a0, a1, a2, x_w[p, 0] - origin_a[p, 0], x_w[p, 1] - origin_a[p, 1],
-                        x_w[p, 2] - origin_a[p, 2], out, r, 0)
+                        x_w[p, 2] - origin_a[p, 2], out, r, np.int64(0))
             for c in range(6, 12):
                 out[r, c] = 0.0
 

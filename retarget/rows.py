@@ -31,6 +31,7 @@ from retarget.geometry import (
     _trilinear_phi,
 )
 from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
+from retarget.jit import helper, inlined
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import ProbeSet, _in_frame, _pose_in_frame, _posed_point
 from retarget.problem import ChannelTrack, Problem
@@ -129,23 +130,27 @@ def _choose_extreme_rows(value, phi, body, channel, close, tilt, cos, sin, chose
     the rows grouped by key in a stable sort, then ``_extreme_rows`` per group."""
     key = _group_keys(phi, body, channel, close)
     order = _stable_order(key)
-    starts = [0]
+    starts = np.empty(order.shape[0] + 1, np.intp)
+    starts[0], count = 0, 1
     for i in range(1, order.shape[0]):
         if key[order[i]] != key[order[i - 1]]:
-            starts.append(i)
-    starts.append(order.shape[0])
+            starts[count] = i
+            count += 1
+    starts[count] = order.shape[0]
     grouped = close[order]
     extreme = np.empty(grouped.shape[0], np.bool_)
-    _extreme_rows(value, phi, grouped, np.array(starts), tilt, cos, sin, extreme)
+    _extreme_rows(value, phi, grouped, starts[:count + 1], tilt, cos, sin, extreme)
     for i in range(grouped.shape[0]):
         chosen[grouped[i]] = extreme[i]
 
 
-@numba.njit(cache=True)
+@helper
 def _stable_order(key):
     """The permutation of numpy's stable argsort of small non-negative integer keys, by counting."""
-    lo = key.min()
-    start = np.zeros(key.max() - lo + 2, np.intp)
+    lo, hi = key[0], key[0]
+    for k in key:  # a loop: np.min / np.max would each compile numba's reduction machinery
+        lo, hi = min(lo, k), max(hi, k)
+    start = np.zeros(hi - lo + 2, np.intp)
     for k in key:
         start[k - lo + 1] += 1
     for i in range(1, start.shape[0]):
@@ -157,7 +162,7 @@ def _stable_order(key):
     return order
 
 
-@numba.njit(cache=True)
+@helper
 def _group_keys(phi, body, channel, close):
     """(body · 64 + channel) · 32 + bin of each close row, the bin the argmax of a·(±e_x, ±e_y,
     ±e_z) (first on ties, as ``np.argmax(a @ _BINS.T)``, whose entries are exactly ±a_j)."""
@@ -179,7 +184,7 @@ def _group_keys(phi, body, channel, close):
     return out
 
 
-@numba.njit(cache=True)
+@helper
 def _pairwise_sum(x, rows, col, lo, n):
     """Σ x[rows[lo:lo + n], col] in numpy's order (``pairwise_sum`` of its add loops: 8
     accumulators up to 128 terms, halves beyond), so that sums match np.add.reduce bit for bit."""
@@ -207,7 +212,7 @@ def _pairwise_sum(x, rows, col, lo, n):
     return _pairwise_sum(x, rows, col, lo, half) + _pairwise_sum(x, rows, col, lo + half, n - half)
 
 
-@numba.njit(cache=True)
+@helper
 def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
     """For each group g (rows[bounds[g]:bounds[g + 1]]): its mean gradient direction ā, two
     unit tangents, the 8 tilts ω (|ω| = ``tilt``) and the rows whose d + ω·φ[3:6], or d, is
@@ -217,9 +222,11 @@ def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
     for g in range(bounds.shape[0] - 1):
         lo, hi = bounds[g], bounds[g + 1]
         # np.add.reduceat: the first row, plus numpy's pairwise sum of the others
-        m0 = phi[rows[lo], 0] + _pairwise_sum(phi, rows, 0, lo + 1, hi - lo - 1) if hi - lo > 1 else phi[rows[lo], 0]
-        m1 = phi[rows[lo], 1] + _pairwise_sum(phi, rows, 1, lo + 1, hi - lo - 1) if hi - lo > 1 else phi[rows[lo], 1]
-        m2 = phi[rows[lo], 2] + _pairwise_sum(phi, rows, 2, lo + 1, hi - lo - 1) if hi - lo > 1 else phi[rows[lo], 2]
+        # (column indices as int64, not literals: one compilation of the recursive sum, not three)
+        c0, c1, c2, rest = np.int64(0), np.int64(1), np.int64(2), hi - lo - 1
+        m0 = phi[rows[lo], 0] + _pairwise_sum(phi, rows, c0, lo + 1, rest) if rest > 0 else phi[rows[lo], 0]
+        m1 = phi[rows[lo], 1] + _pairwise_sum(phi, rows, c1, lo + 1, rest) if rest > 0 else phi[rows[lo], 1]
+        m2 = phi[rows[lo], 2] + _pairwise_sum(phi, rows, c2, lo + 1, rest) if rest > 0 else phi[rows[lo], 2]
         n = max(np.sqrt(m0 * m0 + m1 * m1 + m2 * m2), 1e-12)
         m0, m1, m2 = m0 / n, m1 / n, m2 / n
         # e = the axis of the smallest |ā_j| (first on ties); t1 = ā × e
@@ -358,7 +365,7 @@ def _probes_near(probes: ProbeSet, links: np.ndarray, fr: LinkFrames, track: Cha
         return None
     index, x_w, x_c = np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
     k = _probes_near_into(probes.points, probes.offsets, np.asarray(links, np.intp), fr.rot, fr.pos,
-                          np.ascontiguousarray(rot_c, np.float64), np.asarray(pos_c, np.float64), track.is_ground,
+                          np.array(rot_c, np.float64), np.asarray(pos_c, np.float64), track.is_ground,
                           np.asarray(track.lower - reach, np.float64), np.asarray(track.upper + reach, np.float64),
                           float(reach), demo_active, index, x_w, x_c)
     return index[:k], x_w[:k], x_c[:k]
@@ -413,8 +420,8 @@ def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np
                                           else (np.zeros(3), 1.0, np.zeros(3, np.intp), np.zeros(1)))
     moving = track.body != FIXED
     k = _guard_rows_into(guards.points, guards.body, np.asarray(index, np.intp), fr.rot, fr.pos,
-                         np.ascontiguousarray(rot_c, np.float64), np.ascontiguousarray(pos_c, np.float64),
-                         grid is None, phi_nodes, origin, inv, upper, strides, band, float(check), margin is not None,
+                         np.array(rot_c, np.float64), np.array(pos_c, np.float64), grid is None, phi_nodes, origin,
+                         inv, upper, strides, band, float(check), margin is not None,
                          m_origin, m_res, m_cells, m_values, problem.surface_margin, moving, value, phi, body, x_w, grad_c)
     if k == 1:  # numpy turns a single row with another BLAS kernel (matrix-vector): as it does
         phi[:1] = twist_factors(grad_c[:1] @ rot_c.T, x_w[:1], fr.pos[body[:1]], pos_c if moving else None)
@@ -428,7 +435,7 @@ def _guard_rows_into(points, point_body, index, rot, pos, rot_c, pos_c, ground, 
     """Rows of ``_guard_rows`` (returns their count): per point, the arithmetic of
     ``ProbeSet.posed_index``, ``to_channel_frame``, ``SDFChannel.distance`` (or the ground's z),
     ``ErrorMargin.at``, ``signed_distance_rows``."""
-    k = 0
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
     for m in range(index.shape[0]):
         p = index[m]
         b = point_body[p]
@@ -766,7 +773,7 @@ def _object_guard_rows_into(link, guard, g_w, rot, pos, phi, origin, inv_resolut
     """The rows of ``object_guard_rows`` (returns their count): guard point guard[q] (world
     ``g_w``) in the frame of link[q], Rᵀ(x − o) summed as numpy's einsum sums it (left to right),
     its distance in the link's grid, and the row where it lies inside closer than ``reach``."""
-    k = 0
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
     for q in range(guard.shape[0]):
         if q + PREFETCH_AHEAD < guard.shape[0]:
             g = guard[q + PREFETCH_AHEAD]
@@ -782,7 +789,7 @@ def _object_guard_rows_into(link, guard, g_w, rot, pos, phi, origin, inv_resolut
     return k
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
     """A world point in link b's frame (``_in_frame``) and ``GridStack.distance`` there: Φ, its gradient (zero outside the grid) and whether it lies
     inside (outside, Φ of the cell of its projection, as the array form)."""
@@ -793,7 +800,7 @@ def _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, up
     return val, g0 * scale, g1 * scale, g2 * scale, inside
 
 
-@numba.njit(cache=True, inline="always")
+@helper
 def _object_link_row(val, g0, g1, g2, w0, w1, w2, b, rot, pos, pos_c, surface_margin, out_value, out_phi, out_link,
                      k):
     """Row k: Φ − m_b ≥ 0 of an object point (world w) at link b's distance Φ with gradient g
@@ -863,7 +870,7 @@ def _object_surface_rows_into(link, cluster, centre, radius, offsets, points, ro
     cluster's centre in the link's grid with Φ − radius < reach, then its deepest point (the
     first smallest Φ among the points inside the grid) if closer than ``reach``. Points are
     posed as ``posed_in_frames`` poses them (the object a body at (``rot_c``, ``pos_c``))."""
-    k = 0
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
     for q in range(cluster.shape[0]):
         if q + PREFETCH_AHEAD < cluster.shape[0]:
             p0, p1, p2 = _object_point(centre, cluster[q + PREFETCH_AHEAD], rot_c, pos_c)
@@ -895,7 +902,7 @@ def _object_surface_rows_into(link, cluster, centre, radius, offsets, points, ro
     return k
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _object_point(points, i, rot_c, pos_c):
     """Object-frame point i in the world, as ``posed_in_frames`` poses it."""
     return (rot_c[0, 0] * points[i, 0] + rot_c[0, 1] * points[i, 1] + rot_c[0, 2] * points[i, 2] + pos_c[0],
@@ -903,7 +910,7 @@ def _object_point(points, i, rot_c, pos_c):
             rot_c[2, 0] * points[i, 0] + rot_c[2, 1] * points[i, 1] + rot_c[2, 2] * points[i, 2] + pos_c[2])
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _prefetch_link_cell(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
     """Prefetch the cell of link b's grid that ``_link_grid_distance`` will read for world point w."""
     x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
@@ -991,7 +998,7 @@ def _self_mesh_points(ordered, pair, cluster, offsets, points, rot, pos, reach, 
     the count. Point by point the arithmetic of ``posed_in_frames``, ``GridStack.distance`` and
     ``twist_factors``, without their intermediate arrays. R_b ∇Φ is summed as numpy's einsum
     sums it on our builds ((x + z) + y), so that references did not move by a bit."""
-    k = 0
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
     for q in range(pair.shape[0]):
         a, b = ordered[pair[q], 0], ordered[pair[q], 1]
         inv = inv_resolution[b]
@@ -1020,7 +1027,7 @@ def _self_mesh_points(ordered, pair, cluster, offsets, points, rot, pos, reach, 
     return k
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
     """Point v of body a posed into body b's grid (origin o, 1/resolution inv, upper bounds up,
     strides s, first row row0): whether it lies inside, then Φ and its partials per cell width
@@ -1030,7 +1037,7 @@ def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1
     return inside, val, g0, g1, g2, w0, w1, w2
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
     """A point x in a grid's frame (grid as ``_phi_in_grid``): whether it lies inside, then Φ and
     its partials per cell width (unread when outside)."""
@@ -1044,7 +1051,7 @@ def _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
     return True, val, g0, g1, g2
 
 
-@numba.njit(cache=True, inline="always")
+@inlined
 def _prefetch_point_cell(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
     """Prefetch the cell of b's grid that ``_phi_in_grid`` will read for point v (same arguments)."""
     _, _, _, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)

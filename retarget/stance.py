@@ -231,7 +231,7 @@ def _stance_rows_into(link, points, target_w, gain, rot, pos, weight, out_value,
         for a in range(3):
             if np.isfinite(target_w[k, a]):
                 per_link[link[k]] += 1
-    m = 0
+    m = np.int64(0)  # not a literal 0: _twist_half would compile twice
     for k in range(link.shape[0]):
         b = link[k]
         x = np.empty(3)
@@ -244,7 +244,7 @@ def _stance_rows_into(link, points, target_w, gain, rot, pos, weight, out_value,
             out_weight[m] = weight * gain[k] / per_link[b]
             out_link[m] = b
             _twist_half(1.0 if a == 0 else 0.0, 1.0 if a == 1 else 0.0, 1.0 if a == 2 else 0.0, x[0] - pos[b, 0],
-                        x[1] - pos[b, 1], x[2] - pos[b, 2], out_phi, m, 0)
+                        x[1] - pos[b, 1], x[2] - pos[b, 2], out_phi, m, np.int64(0))
             for c in range(6, 12):
                 out_phi[m, c] = 0.0
             m += 1

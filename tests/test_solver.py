@@ -284,3 +284,28 @@ def test_a_units_demonstrated_gap_is_its_whole_surface_and_decides_whether_it_is
     sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)), [pairs])
     mine = problem.contact_units[problem.robot.body[sel.probe]] == u
     assert not sel.touching[mine].any() and sel.target[mine] == pytest.approx(problem.interaction.clearance_m)
+
+
+def test_the_extreme_rows_group_sums_repeat_numpys_pairwise_sum_bit_for_bit():
+    """``rows._pairwise_sum`` repeats numpy's summation tree (8 accumulators up to 128 terms,
+    halves rounded to multiples of 8 beyond) over gathered rows: its sums must equal
+    np.add.reduce exactly, across the 128-term boundary and several levels."""
+    import numba
+
+    from retarget.rows import _pairwise_sum
+
+    @numba.njit
+    def gathered_sum(x, rows, col, lo, n):  # the helper has no Python entry point of its own
+        return _pairwise_sum(x, rows, col, lo, n)
+
+    rng = np.random.default_rng(7)
+    for n in (1, 7, 8, 9, 127, 128, 129, 136, 255, 256, 1000, 4099):
+        x = rng.normal(size=(n + 9, 3)) * 10.0 ** rng.uniform(-4, 4, size=(n + 9, 3))
+        rows = rng.permutation(n + 9)[: n + 4].astype(np.intp)
+        for col in range(3):
+            expected = np.add.reduce(x[rows[3:3 + n], col].copy())
+            got = gathered_sum(x, rows, np.int64(col), 3, n)
+            assert got == expected, (n, col, got - expected)
+    # not merely close: a plain left-to-right sum of the same terms differs somewhere
+    x = rng.normal(size=(1000, 1)) * 10.0 ** rng.uniform(-4, 4, size=(1000, 1))
+    assert float(np.cumsum(x[:, 0])[-1]) != gathered_sum(x, np.arange(1000), np.int64(0), 0, 1000)
