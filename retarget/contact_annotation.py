@@ -8,12 +8,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from retarget.geometry import (
-    PREFETCH_AHEAD,
-    _cell_axis,
-    _prefetch_phi_cell,
-    _trilinear_phi,
-)
+from retarget.geometry import PREFETCH_AHEAD, _cell_axis, _prefetch_phi_cell, _trilinear_phi
 from retarget.iterate import SolverState, channel_pose, frames_at
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import _posed_point

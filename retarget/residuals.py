@@ -364,8 +364,9 @@ def witness_vector(channel: Channel, w: np.ndarray, w_hat: np.ndarray, dw_dx: np
 
 @numba.njit(cache=True)
 def _witness_vectors(w, w_hat, dw_dx, gamma, dgamma, vec, jac):
+    flat_vec, flat_jac = vec.reshape(-1), jac.reshape(-1, 3)  # the row layout _witness_rows writes
     for p in range(w.shape[0]):
-        _witness_rows(w, w_hat, dw_dx, p, gamma[p], dgamma, p, vec.reshape(-1), jac.reshape(-1, 3), 3 * p)
+        _witness_rows(w, w_hat, dw_dx, p, gamma[p], dgamma, p, flat_vec, flat_jac, 3 * p)
 
 
 @helper
