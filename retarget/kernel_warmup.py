@@ -20,13 +20,12 @@ numba checks its cache against the sources itself). Library calls never spawn: o
 line starts a warm-up. A warm-up that fails costs time, never a result: the solver compiles
 what it needs, and a warning names the kernel.
 
-``python -m retarget.kernel_warmup --record`` rewrites the list from a retarget of the
-synthetic box carry (the tests check that it is current).
+``python -m retarget.kernel_record`` rewrites the list from a retarget of the synthetic box
+carry (``retarget.kernel_record``; the tests check that the list is current).
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import importlib
 import multiprocessing
@@ -41,17 +40,11 @@ from pathlib import Path
 KERNEL_LIST = Path(__file__).with_name("kernels.txt")
 #: At most this many warm-up processes (each imports the package and compiles shared helpers).
 MAX_WORKERS = 4
-#: The clip the list is recorded from: the synthetic box carry at this rate (Hz) calls every
-#: kernel that the real carries, tables and walks call (each with the same signature).
-RECORD_FPS = 10.0
 
 _ROOT = Path(__file__).resolve().parent.parent
 #: Source files of numba kernels: a change to any of them makes numba recompile (and a new marker).
 _KERNEL_SOURCES = ("retarget/*.py", "retarget/evaluation/*.py", "otr_gym/rotations.py")
 _PACKAGES = ("retarget", "otr_gym")
-_HEADER = ("# numba kernels of the retargeter that Python calls, one signature each (numba's type reprs).\n"
-           "# retarget.kernel_warmup compiles them beside the grids of a first run.\n"
-           "# Regenerate after changing a kernel's arguments: python -m retarget.kernel_warmup --record\n")
 
 _pending: WarmUp | None = None
 
@@ -105,7 +98,9 @@ def compiled_signatures() -> list[str]:
         if name.split(".")[0] not in _PACKAGES:
             continue
         for attr, value in vars(module).items():
-            if isinstance(value, CPUDispatcher) and value.__module__ == name:
+            # helpers (retarget.jit) compile inside their callers and cannot be called from Python
+            if (isinstance(value, CPUDispatcher) and value.__module__ == name
+                    and not value.targetoptions.get("no_cpython_wrapper")):
                 lines.update(f"{name}.{attr} {signature!r}" for signature in value.signatures)
     return sorted(lines)
 
@@ -181,7 +176,7 @@ class WarmUp:
             outcome.close()
         if failures:
             warnings.warn("numba kernel warm-up: " + "; ".join(failures) + " (the solver compiles them itself; "
-                          "if a signature is stale: python -m retarget.kernel_warmup --record)",
+                          "if a signature is stale: python -m retarget.kernel_record)",
                           RuntimeWarning, stacklevel=2)
         else:
             self.marker.parent.mkdir(parents=True, exist_ok=True)
@@ -260,36 +255,3 @@ def _compile_from_front(front, back, lock, send) -> None:
     finally:
         send.send(failures)
         send.close()
-
-
-def record(path: Path = KERNEL_LIST) -> list[str]:
-    """Retarget the synthetic box carry in this process and write the kernels it compiled to
-    ``path`` (atomically); run it in a fresh process, where nothing else has compiled them."""
-    import dataclasses
-
-    from otr_gym.io import atomic_write
-    from retarget.pipeline import RetargetConfig, retarget_timed
-    from retarget.synthetic import generate
-
-    retarget_timed(generate("box_carry"), dataclasses.replace(RetargetConfig(), fps=RECORD_FPS))
-    lines = compiled_signatures()
-    atomic_write(path, lambda f: f.write(_HEADER + "\n".join(lines) + "\n"), binary=False)
-    return lines
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m retarget.kernel_warmup", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--record", action="store_true", help=f"rewrite {KERNEL_LIST.name} from a synthetic carry")
-    parser.add_argument("--compile", action="store_true", help="compile every listed kernel into numba's cache")
-    args = parser.parse_args(argv)
-    if args.record:
-        print(f"{KERNEL_LIST}: {len(record())} kernels")
-    if args.compile:
-        failures = compile_kernels(read_kernel_list())
-        print("\n".join(failures) or "all listed kernels compiled")
-        return 1 if failures else 0
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

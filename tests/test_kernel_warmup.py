@@ -20,11 +20,10 @@ ROOT = Path(__file__).resolve().parents[1]
 # A retarget of the recorded clip that reports the kernels numba compiled (not loaded from its
 # cache) and the list's lines for every kernel it called.
 _RETARGET_AND_REPORT = textwrap.dedent("""
-    import dataclasses, json
+    import json
     from numba.core import event
-    from retarget.kernel_warmup import RECORD_FPS, compiled_signatures
-    from retarget.pipeline import RetargetConfig, retarget_timed
-    from retarget.synthetic import generate
+    from retarget.kernel_record import retarget_recorded_clip
+    from retarget.kernel_warmup import compiled_signatures
 
     compiled = []
 
@@ -36,7 +35,7 @@ _RETARGET_AND_REPORT = textwrap.dedent("""
             compiled.append(e.data["dispatcher"].py_func.__module__ + "." + e.data["dispatcher"].py_func.__name__)
 
     event.register("numba:compile", Compiled())
-    retarget_timed(generate("box_carry"), dataclasses.replace(RetargetConfig(), fps=RECORD_FPS))
+    retarget_recorded_clip()
     print(json.dumps({"compiled": sorted(set(compiled)), "signatures": compiled_signatures()}))
 """)
 
@@ -67,7 +66,7 @@ def test_a_warmup_fills_numbas_cache_so_that_the_solver_compiles_nothing_and_the
     assert warm["marker"] and warm["again"]  # a filled cache is not warmed twice
     run = _run(_RETARGET_AND_REPORT, tmp_path / "numba")
     listed = [line for line in KERNEL_LIST.read_text().splitlines() if line and not line.startswith("#")]
-    assert run["signatures"] == listed, ("retarget/kernels.txt is stale: python -m retarget.kernel_warmup --record")
+    assert run["signatures"] == listed, ("retarget/kernels.txt is stale: python -m retarget.kernel_record")
     assert run["compiled"] == [], f"compiled although warmed up: {run['compiled']}"
 
 
