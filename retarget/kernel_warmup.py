@@ -198,6 +198,11 @@ def start_warmup() -> WarmUp | None:
 
     if _pending is not None or numba.config.DISABLE_JIT or _available_cpus() < 2:
         return None
+    try:
+        entries = read_kernel_list(KERNEL_LIST)
+    except (OSError, ValueError) as exc:  # a missing or broken list costs the warm-up, never the run
+        warnings.warn(f"numba kernel warm-up skipped: {exc}", RuntimeWarning, stacklevel=2)
+        return None
     from retarget.kinematics import _link_jacobians
 
     if _link_jacobians.signatures:  # this process compiled the kernels already (a previous clip)
@@ -205,7 +210,6 @@ def start_warmup() -> WarmUp | None:
     marker = warmup_marker()
     if marker.is_file():
         return None
-    entries = read_kernel_list()
     context = multiprocessing.get_context("spawn")
     lock = context.Lock()
     front, back = context.Value("i", 0, lock=False), context.Value("i", len(entries), lock=False)

@@ -103,6 +103,14 @@ def test_no_warmup_with_one_cpu_and_nothing_to_finish_when_none_began(monkeypatc
     assert kernel_warmup.finish_warmup() is None
 
 
+def test_a_missing_kernel_list_skips_the_warmup_with_a_warning_naming_it(tmp_path, monkeypatch):
+    monkeypatch.setattr(kernel_warmup, "_available_cpus", lambda: 2)
+    monkeypatch.setattr(kernel_warmup, "KERNEL_LIST", tmp_path / "kernels.txt")
+    with pytest.warns(RuntimeWarning, match=r"warm-up skipped: .*kernels\.txt"):
+        assert start_warmup() is None
+    assert kernel_warmup._pending is None
+
+
 def test_the_marker_changes_with_a_kernel_source(tmp_path, monkeypatch):
     before = kernel_warmup.warmup_marker()
     source = tmp_path / "retarget" / "rows.py"
