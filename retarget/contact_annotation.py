@@ -10,6 +10,7 @@ import numpy as np
 
 from retarget.geometry import PREFETCH_AHEAD, _cell_axis, _prefetch_phi_cell, _trilinear_phi
 from retarget.iterate import SolverState, channel_pose, frames_at
+from retarget.jit import kernel_pose
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import _posed_point
 from retarget.problem import ChannelTrack, Problem
@@ -65,7 +66,7 @@ def closest_of_links(problem: Problem, fr: LinkFrames, track: ChannelTrack, link
                                               grid._strides))
     owner, x_c, buffer = np.empty(NUM_LINKS, np.intp), np.empty((NUM_LINKS, 3)), np.empty((n, 3))
     k = _closest_of_links(robot.points, robot.offsets, guards.points, guards.offsets, links, fr.rot, fr.pos,
-                          np.array(rot_c, np.float64), np.array(pos_c, np.float64), ground,
+                          kernel_pose(rot_c), kernel_pose(pos_c), ground,
                           np.asarray(track.lower - band, np.float64), np.asarray(track.upper + band, np.float64),
                           band, phi, origin, inv, upper, strides, buffer, np.empty(n, np.intp), owner, x_c)
     return owner[:k], x_c[:k]

@@ -50,8 +50,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="compile the listed kernels into numba's cache instead of recording the list")
     args = parser.parse_args(argv)
     if args.compile:
-        failures = compile_kernels(read_kernel_list())
-        print("\n".join(failures) or f"all {len(read_kernel_list())} listed kernels compiled")
+        entries = read_kernel_list()
+        failures = compile_kernels(entries)
+        print("\n".join(failures) or f"all {len(entries)} listed kernels compiled")
         return 1 if failures else 0
     print(f"{KERNEL_LIST}: {len(record())} kernels")
     return 0

@@ -163,12 +163,7 @@ class WarmUp:
         from otr_gym.io import atomic_write
 
         failures = []
-        while True:
-            with self.lock:
-                if self.front.value >= self.back.value:
-                    break
-                self.back.value -= 1
-                k = self.back.value
+        while (k := _take(self.front, self.back, self.lock, from_back=True)) is not None:
             failures += compile_kernels([self.entries[k]])
         for process, outcome in zip(self.processes, self.outcomes):
             process.join()
@@ -216,7 +211,7 @@ def start_warmup() -> WarmUp | None:
     processes, outcomes = [], []
     for k in range(min(MAX_WORKERS, _available_cpus() - 1)):
         receive, send = context.Pipe(duplex=False)
-        process = context.Process(target=_compile_from_front, args=(front, back, lock, send),
+        process = context.Process(target=_compile_from_front, args=(KERNEL_LIST, front, back, lock, send),
                                   name=f"otr-kernel-warmup-{k}", daemon=True)
         process.start()
         send.close()
@@ -241,18 +236,26 @@ def stop_warmup() -> None:
         warmup.stop()
 
 
-def _compile_from_front(front, back, lock, send) -> None:
+def _take(front, back, lock, from_back: bool) -> int | None:
+    """The index of the next kernel nobody has taken, from the front or the back of the shared
+    list (None once the two ends meet)."""
+    with lock:
+        if front.value >= back.value:
+            return None
+        if from_back:
+            back.value -= 1
+            return back.value
+        front.value += 1
+        return front.value - 1
+
+
+def _compile_from_front(path, front, back, lock, send) -> None:
     """A warm-up process: compile the list's kernels from the front until it meets the back;
     the failures go back through ``send``."""
     failures = []
     try:
-        entries = read_kernel_list()
-        while True:
-            with lock:
-                if front.value >= back.value:
-                    break
-                k = front.value
-                front.value += 1
+        entries = read_kernel_list(path)
+        while (k := _take(front, back, lock, from_back=False)) is not None:
             failures += compile_kernels([entries[k]])
     except BaseException as exc:  # noqa: BLE001 - every failure goes back to the parent, which carries on
         failures.append(f"warm-up process: {type(exc).__name__}: {exc}\n{traceback.format_exc(limit=3)}")

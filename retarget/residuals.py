@@ -32,7 +32,7 @@ from numba import types
 from numba.extending import intrinsic
 
 from retarget.geometry import Channel, ProximityQuery
-from retarget.jit import helper, inlined
+from retarget.jit import helper, inlined, kernel_pose
 
 #: Body index of things that never move (ground, static furniture): no decision variable.
 FIXED = -1
@@ -457,8 +457,7 @@ def channel_twist_factors(grad_c: np.ndarray, point: np.ndarray, rot_c: np.ndarr
     if len(grad_c) == 1:
         return twist_factors(grad_c @ rot_c.T, x_w[point], origin_a[point], origin_b)
     phi = np.empty((len(grad_c), 12))
-    # writeable C copies of the small pose arrays: a read-only or strided one would compile another kernel
-    _channel_twist_rows(grad_c, point, np.array(rot_c, np.float64), x_w, np.array(origin_a, np.float64, order="C"),
+    _channel_twist_rows(grad_c, point, kernel_pose(rot_c), x_w, kernel_pose(origin_a),
                         np.zeros(3) if origin_b is None else np.asarray(origin_b, np.float64), origin_b is not None, phi)
     return phi
 

@@ -31,7 +31,7 @@ from retarget.geometry import (
     _trilinear_phi,
 )
 from retarget.iterate import SectionTimer, SolverState, channel_pose, frames_at
-from retarget.jit import helper, inlined
+from retarget.jit import helper, inlined, kernel_pose
 from retarget.kinematics import NUM_LINKS, LinkFrames
 from retarget.probes import ProbeSet, _in_frame, _pose_in_frame, _posed_point
 from retarget.problem import ChannelTrack, Problem
@@ -365,7 +365,7 @@ def _probes_near(probes: ProbeSet, links: np.ndarray, fr: LinkFrames, track: Cha
         return None
     index, x_w, x_c = np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
     k = _probes_near_into(probes.points, probes.offsets, np.asarray(links, np.intp), fr.rot, fr.pos,
-                          np.array(rot_c, np.float64), np.asarray(pos_c, np.float64), track.is_ground,
+                          kernel_pose(rot_c), kernel_pose(pos_c), track.is_ground,
                           np.asarray(track.lower - reach, np.float64), np.asarray(track.upper + reach, np.float64),
                           float(reach), demo_active, index, x_w, x_c)
     return index[:k], x_w[:k], x_c[:k]
@@ -420,7 +420,7 @@ def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np
                                           else (np.zeros(3), 1.0, np.zeros(3, np.intp), np.zeros(1)))
     moving = track.body != FIXED
     k = _guard_rows_into(guards.points, guards.body, np.asarray(index, np.intp), fr.rot, fr.pos,
-                         np.array(rot_c, np.float64), np.array(pos_c, np.float64), grid is None, phi_nodes, origin,
+                         kernel_pose(rot_c), kernel_pose(pos_c), grid is None, phi_nodes, origin,
                          inv, upper, strides, band, float(check), margin is not None,
                          m_origin, m_res, m_cells, m_values, problem.surface_margin, moving, value, phi, body, x_w, grad_c)
     if k == 1:  # numpy turns a single row with another BLAS kernel (matrix-vector): as it does
@@ -763,7 +763,7 @@ def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, li
     value, phi, link = np.empty(len(guard)), np.empty((len(guard), 12)), np.empty(len(guard), np.intp)
     k = _object_guard_rows_into(links[pair_link], guard, g_w, fr.rot, fr.pos, grids.phi.ravel(), grids.origin,
                                 grids.inv_resolution, grids.upper, grids.strides, grids.offset, float(reach),
-                                problem.surface_margin, np.asarray(pos_c, np.float64), value, phi, link)
+                                problem.surface_margin, kernel_pose(pos_c), value, phi, link)
     return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
 
 
@@ -856,7 +856,7 @@ def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, 
     n = len(pair_cl)
     value, phi, link = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp)
     k = _object_surface_rows_into(links[pair], pair_cl, cl.centre, cl.radius, cl.offsets, sg.points,
-                                  np.ascontiguousarray(rot_c, np.float64), np.asarray(pos_c, np.float64), fr.rot,
+                                  kernel_pose(rot_c), kernel_pose(pos_c), fr.rot,
                                   fr.pos, grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper,
                                   grids.strides, grids.offset, float(reach), problem.surface_margin, value, phi, link)
     return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
