@@ -156,6 +156,47 @@ def test_failures_concentrate_starts_on_the_failing_bin():
     assert in_bin3 > 0.85
 
 
+@pytest.mark.parametrize("floor", ["absolute", "relative"])
+def test_a_bin_that_stops_failing_keeps_its_starts_only_under_the_relative_floor(floor):
+    """40 failures a step in bin 3 of a 6-bin clip (8192 envs of a box run fail about that
+    often). §2's absolute floor 0.5/6 then leaves bin 0 a share of 0.5/6 / (40 + 0.5) = 0.2 %;
+    relative, each bin without failures keeps 0.5/(6·1.5) = 5.6 % of the starts."""
+    cmd = _command([250], num_envs=8192, adaptive_floor=floor, adaptive_uniform_ratio=0.5)
+    cmd.frame[:] = 130  # bin 3
+    failing = torch.arange(8192) < 40
+    for _ in range(20000):  # the EMA (α 0.001) settles at 40 per step
+        cmd.record_failures(failing)
+        cmd.update_failure_rate()
+    f = 40.0 * (1.0 - 0.999**20000)
+    p = cmd.sampling_probabilities()
+    quiet = 0.5 / 6 * (f if floor == "relative" else 1.0)
+    expected = torch.full((6,), quiet)
+    expected[3] += f
+    torch.testing.assert_close(p, expected / expected.sum(), rtol=1e-4, atol=0)
+    if floor == "relative":
+        assert p[0].item() == pytest.approx(0.5 / (6 * 1.5), rel=1e-3)
+    else:
+        assert p[0].item() < 0.0025
+    cmd.resample(torch.ones(8192, dtype=torch.bool))
+    share = ((cmd.start_frame * 6 // 248) == 0).float().mean().item()
+    assert abs(share - p[0].item()) < 4 * (p[0].item() * (1 - p[0].item()) / 8192) ** 0.5
+
+
+def test_the_relative_floor_is_the_absolute_one_while_failures_are_rare():
+    a, r = _command([250], adaptive_floor="absolute"), _command([250], adaptive_floor="relative")
+    for cmd in (a, r):
+        cmd.frame[:] = 130
+        for _ in range(300):
+            cmd.record_failures(torch.arange(4096) < 2)  # Σf = 2·(1 − 0.999³⁰⁰) = 0.52 < 1
+            cmd.update_failure_rate()
+    torch.testing.assert_close(a.sampling_probabilities(), r.sampling_probabilities())
+
+
+def test_an_unknown_floor_mode_is_refused():
+    with pytest.raises(ValueError, match="adaptive_floor"):
+        _command([250], adaptive_floor="proportional")
+
+
 def test_each_clip_gets_the_same_start_mass_when_nothing_failed():
     cmd = _command([250, 60])
     cmd.resample(torch.ones(4096, dtype=torch.bool))

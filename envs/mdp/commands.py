@@ -10,7 +10,11 @@ has n_c = ⌊T_c / (fps·bin_duration)⌋ + 1 bins. A termination adds 1 to the 
 target frame; every step the per-bin failure rate follows f ← α·cur + (1−α)·f. A start bin is
 drawn with p(bin) ∝ Σ_k λᵏ·(f + r/n_c)[bin + k] (k < kernel size, clamped inside the clip),
 then t₀ = ⌊(j + U)/n_c · (T_c − 2)⌋ for local bin j (T_c − 2 rather than the spec's T_c − 1 so
-that the first target t₀ + 1 exists). With several clips (ours) a clip is drawn first:
+that the first target t₀ + 1 exists). ``adaptive_floor = "relative"`` (ours) scales the floor r/n_c
+by max(Σ_c f, 1), the clip's failure mass: §2's absolute floor is a count, negligible beside the
+tens of failures a step of thousands of envs, and a bin that stops failing then stops being
+started from, so it is forgotten; relative, it keeps r/(n_c(1 + r)) of the clip's starts. With
+several clips (ours) a clip is drawn first:
 p(c) = β/C + (1 − β)·m_c/Σm, where m_c is the clip's mass under that rule and β the
 ``library_clip_floor``, then a bin of the clip by the rule; β = 0 is one distribution over all
 bins, and with no failures every clip gets the same mass either way. The floor matters because
@@ -34,6 +38,7 @@ from otr_gym import robot
 from otr_gym.rotations import quat_apply_inverse, quat_from_euler_xyz, quat_mul
 
 START_MODES = ("adaptive", "uniform", "zero")
+FLOOR_MODES = ("absolute", "relative")
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,8 @@ class MotionCommand:
     def __init__(self, motion: MotionLibrary, num_envs: int, cfg: CommandCfg, generator: torch.Generator):
         if cfg.start not in START_MODES:
             raise ValueError(f"command.start must be one of {START_MODES}, got '{cfg.start}'")
+        if cfg.adaptive_floor not in FLOOR_MODES:
+            raise ValueError(f"command.adaptive_floor must be one of {FLOOR_MODES}, got '{cfg.adaptive_floor}'")
         if cfg.on_clip_end not in CLIP_END_MODES:
             raise ValueError(f"command.on_clip_end must be one of {CLIP_END_MODES}, got '{cfg.on_clip_end}'")
         if not 0.0 <= cfg.library_clip_floor <= 1.0:
@@ -121,7 +128,11 @@ class MotionCommand:
     def sampling_probabilities(self) -> torch.Tensor:
         """(num_bins,) start-bin distribution (see module docstring)."""
         floor = self.cfg.adaptive_uniform_ratio / self.bin_count[self.bin_clip].float()
-        weight = floor + (self.failure_rate if self.cfg.start == "adaptive" else 0.0)
+        failures = self.failure_rate if self.cfg.start == "adaptive" else torch.zeros_like(floor)
+        if self.cfg.adaptive_floor == "relative":
+            clip_failures = torch.zeros(self.motion.num_clips, device=self.device).index_add_(0, self.bin_clip, failures)
+            floor = floor * clip_failures.clamp_min(1.0)[self.bin_clip]
+        weight = floor + failures
         last_bin = (self.bin_offset + self.bin_count - 1)[self.bin_clip]
         index = torch.arange(weight.numel(), device=self.device)
         p = torch.zeros_like(weight)
