@@ -312,10 +312,7 @@ def _box_command() -> CommandCfg:
     # Arm noise of ±0.1 rad moves a hand ~5 cm: into a held box. Half of it keeps starts
     # inside a grasp penetration-free within a few cm (see configs/env/box.yaml).
     cmd.reset_noise = replace(cmd.reset_noise, joint_pos_rad=0.05)
-    # The approach and lift of a box clip stop failing early and, under §2's absolute floor, stop
-    # being started from: a 20.6-minute run that tracked 60 % of its segments fell over in the
-    # first 0.6 s from frame 0 (README, Box pick-and-place). Relative, with half the clip's failure
-    # mass spread evenly: a bin without failures keeps 0.5/(n·1.5) of the starts (5 % of 7 bins).
+    # a box clip's approach stops failing early and was forgotten under §2's floor (CommandCfg.adaptive_floor)
     return replace(cmd, adaptive_floor="relative", adaptive_uniform_ratio=0.5)
 
 
