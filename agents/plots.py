@@ -46,6 +46,55 @@ def read_scalars(run_dir: str | Path) -> dict[str, tuple[list[int], list[float]]
     return {tag: (sorted(v), [v[k] for k in sorted(v)]) for tag, v in merged.items()}
 
 
+def learning_minutes(scalars: dict[str, tuple[list[int], list[float]]]) -> tuple[list[int], list[float]]:
+    """(iterations, cumulative learning time in minutes at the end of each): rsl-rl's
+    per-iteration collection plus update time, what ``--max-minutes`` budgets (env build and
+    kernel compilation are outside it)."""
+    import numpy as np
+
+    if "Perf/collection_time" not in scalars or "Perf/learning_time" not in scalars:
+        raise runs.RunError("no Perf/collection_time and Perf/learning_time curves in the run's TensorBoard events")
+    its, collection = scalars["Perf/collection_time"]
+    learning = dict(zip(*scalars["Perf/learning_time"], strict=True))
+    seconds = np.asarray(collection) + np.asarray([learning.get(it, 0.0) for it in its])
+    return list(its), (np.cumsum(seconds) / 60.0).tolist()
+
+
+def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str] | None = None) -> Path:
+    """Several runs side by side: one panel per ``TRAINING_PANELS`` curve that any run has, one
+    line per run, against learning time (minutes), so runs that shared a GPU or ran at other
+    speeds compare at equal budgets."""
+    labels = labels or [Path(r).name for r in run_dirs]
+    if len(labels) != len(run_dirs):
+        raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    curves = []
+    for run in run_dirs:
+        scalars = read_scalars(run)
+        try:
+            its, minutes = learning_minutes(scalars)
+        except runs.RunError as e:
+            raise runs.RunError(f"{run}: {e}") from None
+        curves.append((scalars, dict(zip(its, minutes, strict=True))))
+    panels = [(tag, title) for tag, title in TRAINING_PANELS.items()
+              if tag != "Perf/total_fps" and any(tag in s for s, _ in curves)]
+    cols = min(3, len(panels))
+    rows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (tag, title) in zip(axes.flat[:len(panels)], panels, strict=True):
+        for (scalars, minutes), label in zip(curves, labels, strict=True):
+            if tag in scalars:
+                its, values = scalars[tag]
+                ax.plot([minutes.get(it, float("nan")) for it in its], values, lw=1.1, label=label)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("learning time (min)")
+        ax.grid(alpha=0.3)
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    return _save(fig, out_png)
+
+
 def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
     scalars = read_scalars(run_dir)
     panels = [(tag, title) for tag, title in TRAINING_PANELS.items() if tag in scalars]
@@ -146,8 +195,7 @@ def training_summary(run_dir: str | Path) -> dict:
         "run": Path(run_dir).name,
         "iterations": (steps[-1] + 1) if steps else 0,
         "median_fps": statistics.median(fps) if fps else None,
-        "learning_minutes": sum(scalars["Perf/collection_time"][1] + scalars["Perf/learning_time"][1]) / 60.0
-        if "Perf/collection_time" in scalars else None,
+        "learning_minutes": learning_minutes(scalars)[1][-1] if "Perf/collection_time" in scalars else None,
         "last": last,
     }
 
@@ -156,22 +204,32 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     parser = argparse.ArgumentParser(prog="python -m agents.plots",
-                                     description="training curves (PNG) and summary (JSON) of a run")
-    parser.add_argument("run", help="run folder")
+                                     description="training curves (PNG) and summary (JSON) of a run; with several "
+                                     "runs, their curves side by side against learning time")
+    parser.add_argument("run", nargs="+", help="run folder(s)")
     parser.add_argument("--png", required=True, help="output PNG of the training curves")
-    parser.add_argument("--json", help="output JSON summary (iterations, median FPS, last values)")
+    parser.add_argument("--labels", nargs="+", help="with several runs: their legend labels (default: folder names)")
+    parser.add_argument("--json", help="output JSON summary (iterations, median FPS, last values); one run only")
     parser.add_argument("--clips-png", help="output PNG of the per-clip curves (success, MPJPE, segment length, "
-                        "start probability)")
+                        "start probability); one run only")
     args = parser.parse_args(argv)
-    print(f"wrote {plot_training(args.run, args.png)}")
+    if len(args.run) > 1 or args.labels:
+        if args.json or args.clips_png:
+            parser.error("--json and --clips-png take one run")
+        try:
+            print(f"wrote {plot_runs(args.run, args.png, args.labels)}")
+        except ValueError as e:
+            parser.error(str(e))
+        return 0
+    run = args.run[0]
+    print(f"wrote {plot_training(run, args.png)}")
     if args.clips_png:
-        print(f"wrote {plot_clip_curves(args.run, args.clips_png)}")
+        print(f"wrote {plot_clip_curves(run, args.clips_png)}")
     if args.json:
-        summary = training_summary(args.run)
+        summary = training_summary(run)
         print(f"wrote {runs.write_json(args.json, summary)}: {summary['iterations']} iterations, "
               f"median {summary['median_fps']} env steps/s")
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
