@@ -420,3 +420,25 @@ def test_a_box_held_between_both_hands_at_its_bottom_edges_is_narrowed_between_t
         task.step(torch.zeros(1, 29))
     box_state = task.tracking_state.objects
     assert abs(box_state.pos_w[0, 0, 2].item() - box_state.ref_pos_w[0, 0, 2].item()) < 3e-3
+
+
+def test_kinematic_playback_leaves_an_uncarried_box_where_it_stands(box_reference):
+    """The generated clip's box stands on the floor for frames [0, 40), then the reference flies
+    it away from every hand (frames 39-49): played back with the robot on the reference, the
+    simulated box stays on the floor, exact while the reference agrees, and the playback ends on
+    the first frame where the reference is more than the 25 cm termination away."""
+    from envs.kinematic_playback import play
+    from otr_gym.reference import Reference
+
+    result = play(box_reference)
+    ref_box = Reference.load(box_reference).objects[0].pos_w
+    start = ref_box[0]
+    moved = np.linalg.norm(ref_box - start, axis=-1)
+    first_far = int(np.argmax(moved > result.termination_m))
+    assert result.termination_m == 0.25
+    assert result.ended_at is not None and abs(result.ended_at - first_far) <= 1
+    assert result.frames == result.ended_at and result.clip_frames == len(ref_box)
+    np.testing.assert_allclose(result.pos_error_cm[:35], 0.0, atol=0.5)
+    # once the reference leaves, the error is the reference's own displacement from the standing box
+    np.testing.assert_allclose(result.pos_error_cm[-1], 100 * moved[result.ended_at], atol=0.5)
+    assert max(result.ori_error_deg[:35]) < 1.0

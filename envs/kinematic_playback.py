@@ -1,0 +1,87 @@
+"""Kinematic playback of a box reference: the robot put on the reference at every physics step
+(qpos interpolated between frames, qvel from the reference), only the objects simulated (MuJoCo on
+the CPU, the OTR-G1-BoxTrack-v0 model: fitted hand boxes, grasp-fitted box, nominal mass and
+friction, no randomisation). What a policy that tracks perfectly, squeezing no harder than the
+reference's hands, does to the box. ``benchmarks/grasp_playback.py`` is its command line.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import torch
+
+from envs.box import make_box_task
+from envs.config import load_box_config
+from otr_gym.reference import Reference
+from otr_gym.rotations import quat_apply_inverse, quat_error_angle
+
+
+@dataclass
+class Playback:
+    reference: str
+    frames: int  # frames played after the first
+    clip_frames: int
+    ended_at: int | None  # frame where the object passed the termination, None if carried to the end
+    termination_m: float  # the box task's object termination (terminations.object_pos), which ends the playback
+    pos_error_cm: list[float]  # per frame played, moving object 0
+    ori_error_deg: list[float]
+
+    def row(self) -> str:
+        pos, ori = np.asarray(self.pos_error_cm), np.asarray(self.ori_error_deg)
+        end = "–" if self.ended_at is None else f"frame {self.ended_at}"
+        return (f"| {Path(self.reference).name} | {self.frames} / {self.clip_frames - 1} | {pos.mean():.1f} / "
+                f"{np.percentile(pos, 95):.1f} | {ori.mean():.1f} / {ori.max():.1f} | {end} |")
+
+
+def _robot_state(motion, qpos_all: torch.Tensor, f: float) -> tuple[np.ndarray, np.ndarray]:
+    """Reference qpos (root xyz, wxyz, joints) and qvel (root linear world, angular body, joints)
+    at fractional frame f, linearly interpolated (quaternion renormalised)."""
+    f0 = int(np.floor(f))
+    f1, a = min(f0 + 1, len(qpos_all) - 1), f - f0
+    lerp = lambda x: (1 - a) * x[f0] + a * x[f1]  # noqa: E731
+    qpos = lerp(qpos_all)
+    qpos[3:7] /= qpos[3:7].norm()
+    ang_b = quat_apply_inverse(qpos[3:7].float(), lerp(motion.root_ang_vel_w))
+    qvel = torch.cat([lerp(motion.root_lin_vel_w), ang_b, lerp(motion.joint_vel)])
+    return qpos.numpy(), qvel.double().numpy()
+
+
+def play(reference: str | Path, object_meshes: dict[str, str] | None = None) -> Playback:
+    """Play one reference; ``object_meshes`` (name -> mesh file) for the reference's objects that
+    embed no mesh, names the reference does not have are ignored."""
+    names = {t.name for t in Reference.load(reference).objects}
+    overrides = {"objects": {"overrides": {n: {"mesh": m} for n, m in (object_meshes or {}).items() if n in names}}}
+    cfg = load_box_config(None, overrides)
+    task = make_box_task(reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True, autoreset=False)
+    motion, objects = task.motion, task.objects
+    if motion.num_clips != 1:
+        raise ValueError(f"{reference}: one clip at a time ({motion.num_clips} given)")
+    model = task.backend.model
+    data = mujoco.MjData(model)
+    last = int(motion.clip_length[0]) - 1
+    nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
+    qpos_all = motion.qpos(torch.arange(last + 1)).double()
+    qpos, qvel = _robot_state(motion, qpos_all, 0.0)
+    data.qpos[:nq], data.qvel[:nv] = qpos, qvel
+    data.qpos[nq:nq + 7] = torch.cat([objects.pos_w[0, 0], objects.quat_w[0, 0]]).numpy()
+    mujoco.mj_forward(model, data)
+    decimation = cfg.sim.decimation
+    termination = float(cfg.terminations["object_pos"].params["threshold_m"])
+    pos_err, ori_err, ended = [], [], None
+    for f in range(1, last + 1):
+        for k in range(decimation):
+            qpos, qvel = _robot_state(motion, qpos_all, f - 1 + (k + 1) / decimation)
+            data.qpos[:nq], data.qvel[:nv] = qpos, qvel
+            mujoco.mj_step(model, data)
+        box = torch.from_numpy(data.qpos[nq:nq + 7].copy()).float()
+        err = float(torch.linalg.norm(box[:3] - objects.pos_w[f, 0]))
+        pos_err.append(100 * err)
+        ori_err.append(float(torch.rad2deg(quat_error_angle(objects.quat_w[f, 0], box[3:] / box[3:].norm()))))
+        if err > termination:
+            ended = f
+            break
+    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err)
