@@ -18,7 +18,7 @@ import zlib
 
 import numpy as np
 
-from agents.deploy.messages import NUM_MOTORS, LowCmd_, LowState_
+from agents.deploy.messages import NUM_MOTORS, LowCmd_, LowState_, low_state_fields
 
 POLYNOMIAL = 0x04C11DB7
 #: C-struct packing (RL_SPEC §9): header, 35 motor records, reserve + crc.
@@ -66,13 +66,7 @@ def pack_low_cmd(msg: LowCmd_) -> bytes:
 
 def pack_low_state(msg: LowState_) -> bytes:
     """The 2092-byte C layout of a LowState_ (its ``crc`` field included, as the last word)."""
-    imu = msg.imu_state
-    values: list = [*msg.version, msg.mode_pr, msg.mode_machine, msg.tick,
-                    *imu.quaternion, *imu.gyroscope, *imu.accelerometer, *imu.rpy, imu.temperature]
-    for m in msg.motor_state:
-        values += (m.mode, m.q, m.dq, m.ddq, m.tau_est, *m.temperature, m.vol, *m.sensor, m.motorstate, *m.reserve)
-    values += (*msg.wireless_remote, *msg.reserve, msg.crc)
-    return struct.pack(LOWSTATE_FORMAT, *values)
+    return struct.pack(LOWSTATE_FORMAT, *low_state_fields(msg))
 
 
 def low_cmd_crc(msg: LowCmd_) -> int:
