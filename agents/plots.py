@@ -77,12 +77,8 @@ def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str]
         curves.append((scalars, dict(zip(its, minutes, strict=True))))
     panels = [(tag, title) for tag, title in TRAINING_PANELS.items()
               if tag != "Perf/total_fps" and any(tag in s for s, _ in curves)]
-    cols = min(3, len(panels))
-    rows = -(-len(panels) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
-    for ax in axes.flat[len(panels):]:
-        ax.set_visible(False)
-    for ax, (tag, title) in zip(axes.flat[:len(panels)], panels, strict=True):
+    fig, axes = _panel_grid(len(panels))
+    for ax, (tag, title) in zip(axes, panels, strict=True):
         for (scalars, minutes), label in zip(curves, labels, strict=True):
             if tag in scalars:
                 its, values = scalars[tag]
@@ -90,7 +86,7 @@ def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str]
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("learning time (min)")
         ax.grid(alpha=0.3)
-    axes.flat[0].legend(fontsize=7)
+    axes[0].legend(fontsize=7)
     fig.tight_layout()
     return _save(fig, out_png)
 
@@ -101,12 +97,8 @@ def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
     rewards = sorted(tag for tag in scalars if tag.startswith(REWARD_PREFIX))
     if rewards:
         panels.append((REWARD_PREFIX, "reward terms (weight · value · dt)"))
-    cols = min(3, len(panels))
-    rows = -(-len(panels) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
-    for ax in axes.flat[len(panels):]:
-        ax.set_visible(False)
-    for ax, (tag, title) in zip(axes.flat[:len(panels)], panels, strict=True):
+    fig, axes = _panel_grid(len(panels))
+    for ax, (tag, title) in zip(axes, panels, strict=True):
         if tag == REWARD_PREFIX:
             for name in rewards:
                 ax.plot(*scalars[name], lw=1.0, label=name[len(REWARD_PREFIX):])
@@ -174,6 +166,16 @@ def plot_evaluation(results: dict, out_png: str | Path) -> Path:
     ax.set_title(f"{results['run']} on {results['reference']['name']}", fontsize=9)
     fig.tight_layout()
     return _save(fig, out_png)
+
+
+def _panel_grid(n: int):
+    """A figure of ``n`` panels, three a row; (figure, the n axes in reading order)."""
+    cols = min(3, n)
+    rows = -(-n // cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    for ax in axes.flat[n:]:
+        ax.set_visible(False)
+    return fig, list(axes.flat[:n])
 
 
 def _save(fig, out_png: str | Path) -> Path:

@@ -129,7 +129,7 @@ queue() {  # GPU:JOB[@MIN],...
 watchdog() {  # SIGINT to every trainer REPORT_S before the deadline
   local deadline
   deadline=$(cat "$state/DEADLINE")
-  while [ $(( $(date +%s) )) -lt $(( deadline - report_s )) ]; do sleep 5; done
+  while [ "$(date +%s)" -lt $(( deadline - report_s )) ]; do sleep 5; done
   pkill -INT -f "otr_gym.cli train" && echo "deadline: SIGINT to the trainers, $(date -u +%T)"
 }
 
@@ -161,7 +161,7 @@ case ${1:-} in
     for d in out/gpus/*/; do
       echo "== $d $(grep -E 'Learning iteration|Time elapsed' "$d/train.log" 2>/dev/null | tail -2 | tr -s ' ' | tr '\n' ' ')"
     done
-    nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader
+    nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader 2>/dev/null || true
     ;;
   pack)
     # results without checkpoints and ONNX files (a device command returns files of limited size),
