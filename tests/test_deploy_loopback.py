@@ -59,7 +59,11 @@ def test_runner_and_sim_robot_keep_the_g1_upright_for_10_s_of_tracking(tracked_r
     _, rc, out, log, stats = tracked_run
     assert rc == 0, out
     stage = log.arrays["stage"]
-    assert (stage == Stage.TRACK).sum() >= 500  # 10 s at 50 Hz
+    # 10 s of tracking on the runner's 50 Hz grid; a loaded 2-core CI machine may skip a few slots
+    # (the clock jumps to the latest due slot), which the log counts as missed deadlines
+    track_slots = np.diff(log.arrays["deadline_ns"][stage == Stage.TRACK][[0, -1]])[0] // log.meta["period_ns"] + 1
+    assert track_slots >= 500, track_slots
+    assert (stage == Stage.TRACK).sum() >= 0.95 * track_slots, ((stage == Stage.TRACK).sum(), track_slots)
     assert log.transitions()[-1][1:] == ("TRACK", "DAMP", "duration")
     assert stats["upright"], stats  # pelvis above 0.5 m and tilt below 60° until damping
     assert stats["min_pelvis_z_m"] > 0.6
@@ -75,7 +79,7 @@ def test_a_replayed_log_reproduces_the_recorded_actions_to_1e_6(tracked_run, cap
     from agents.deploy.runner import replay
 
     r = replay(log.path)
-    assert r["tracking_cycles"] >= 500
+    assert r["tracking_cycles"] == (log.arrays["stage"] == Stage.TRACK).sum() >= 475  # every logged cycle
     assert r["max_action_diff"] <= 1e-6 and r["stages_equal"] and r["nan_pattern_equal"]
     # the feedback term makes actions depend on the state: a replay with different states would differ
     track = log.arrays["stage"] == Stage.TRACK
