@@ -15,6 +15,7 @@
 # Jobs (inputs in IN, default out/gin, a git-ignored folder carried with the call):
 #   ours           our OMOMO sub3_largebox_003 reference, $IN/sub3_largebox_003.npz (`otr retarget`)
 #   ours_ori       ours with a coarse object orientation term (σ 1 rad): a variant, for direction
+#   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
 #   holo           Holosoma's reference of the clip, $IN/sub3_largebox_003_mj_w_obj.npz + $IN/largebox.obj
 #   no_contact     ours, ABLATION=no_contact          no_object_vel   ours, ABLATION=no_object_vel
 #   demo           the `otr demo` box carry, $IN/demo_box_carry.npz (floor to table)
@@ -51,7 +52,7 @@ reference() {
 
 job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
   case $1 in
-    ours|ours_ori|demo|throughput) ;;
+    ours|ours_ori|ours_tip|demo|throughput) ;;
     holo) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
     no_contact|no_object_vel) echo "ABLATION=$1" ;;
     *) echo "unknown job '$1'" >&2; return 1 ;;
@@ -60,8 +61,11 @@ job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
 
 job_sets() {  # the job's --set overrides, after the caller's SETS
   echo "${SETS:-}"
-  [ "$1" = ours_ori ] && echo "env.rewards.object_ori_coarse.fn=object_orientation_error_exp \
-env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0"
+  case $1 in ours_ori|ours_tip) echo "env.rewards.object_ori_coarse.fn=object_orientation_error_exp \
+env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0" ;; esac
+  [ "$1" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
+env.terminations.object_ori.params.threshold_rad=1.0"
+  return 0
 }
 
 learned_iteration() {  # RUN SECONDS: the last checkpoint within SECONDS of learning

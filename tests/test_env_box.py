@@ -7,6 +7,7 @@ moves through known windows (floor [0, 40), beside the left hand [60, 100), on a
 
 from __future__ import annotations
 
+import math
 import warnings
 from types import SimpleNamespace
 
@@ -21,14 +22,14 @@ from gymnasium.utils.env_checker import check_env
 import otr_gym  # noqa: F401  (registers the environments)
 from envs.box import make_box_task
 from envs.collision import collision_shapes
-from envs.config import BOX_CONFIG, BoxEnvCfg, load_box_config
+from envs.config import BOX_CONFIG, BoxEnvCfg, TerminationTermCfg, load_box_config
 from envs.mdp import rewards as reward_terms
 from envs.mdp.motion import prepared_references
 from envs.mdp.objects import _Geometry, proximity_gate
 from envs.mdp.state import ObjectState
 from envs.objects import object_qpos
 from otr_gym.reference import InvalidReferenceError, Reference
-from otr_gym.rotations import quat_apply, quat_apply_inverse
+from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_mul
 
 
 def _cfg(**command) -> BoxEnvCfg:
@@ -246,6 +247,22 @@ def test_the_object_termination_fires_beyond_25_cm(eval_task):
     _, _, terminated, _, extras = task.step(torch.zeros(2, 29))
     assert extras["terminations"]["object_pos"].tolist() == [False, True]
     assert terminated[1] and not extras["success"].any()
+
+
+def test_the_object_orientation_termination_fires_past_its_angle(box_reference):
+    cfg = BoxEnvCfg()
+    cfg.terminations["object_ori"] = TerminationTermCfg(fn="object_orientation_error", params={"threshold_rad": 1.0})
+    task = make_box_task(box_reference, 3, "mujoco", "cpu", cfg=cfg, evaluation=True)
+    task.reset(seed=0)
+    qpos, qvel = task.backend.qpos.clone(), task.backend.qvel.clone()
+    for i, angle in enumerate((0.0, 0.8, 1.3)):  # box turned about its reference's vertical axis (at rest)
+        turn = torch.tensor([math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)])
+        qpos[i, 39:43] = quat_mul(turn, qpos[i, 39:43])
+    task.backend.reset(torch.ones(3, dtype=torch.bool), qpos, qvel)
+    _, _, terminated, _, extras = task.step(torch.zeros(3, 29))
+    assert extras["terminations"]["object_ori"].tolist() == [False, False, True]
+    assert extras["terminations"]["object_pos"].tolist() == [False, False, False]
+    assert terminated.tolist() == [False, False, True]
 
 
 def test_success_is_the_clip_s_last_frame_reached(eval_task):

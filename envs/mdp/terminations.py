@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from envs.mdp.state import TrackingState
-from otr_gym.rotations import projected_gravity
+from otr_gym.rotations import projected_gravity, quat_error_angle
 
 
 def anchor_height_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
@@ -32,3 +32,11 @@ def object_position_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
     """Any moving object farther than threshold (m) from its reference position (§5 HS: 0.25 m)."""
     o = s.objects
     return torch.any(torch.linalg.norm(o.ref_pos_w - o.pos_w, dim=-1) > threshold_m, dim=-1)
+
+
+def object_orientation_error(s: TrackingState, threshold_rad: float) -> torch.Tensor:
+    """Any moving object turned more than threshold (rad) from its reference orientation: a box
+    tipped over in the hands ends the episode instead of drifting where the orientation reward
+    (σ 0.4 rad) no longer pulls. Not in the default set."""
+    o = s.objects
+    return torch.any(quat_error_angle(o.ref_quat_w, o.quat_w) > threshold_rad, dim=-1)
