@@ -8,8 +8,10 @@ import json
 import pytest
 import torch
 
-from agents import runs
+from agents import episode_trace, runs
 from agents.config import train_config_from_dict
+from agents.episode_trace import CLIP_END, trace_episode
+from agents.evaluate import evaluate
 from agents.export import export_onnx, read_metadata
 from agents.plots import read_scalars
 from agents.train import parse_sets
@@ -69,3 +71,25 @@ def test_box_evaluation_reports_object_errors_and_export_names_the_object_observ
                          "static_object_pos_b", "static_object_ori_b"]
     assert meta["observation_dim"] == 191 and meta["objects"]["moving"] == ["box"]
     assert meta["objects"]["supports"] == ["ground", "table"]
+
+
+def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp_path, capsys):
+    final = evaluate(box_run, device="cpu")["final"]
+    trace = trace_episode(box_run, device="cpu")
+    # the same protocol and loop: the per-step values average to the evaluation's figures
+    assert trace.steps == final["frames"]
+    assert trace.frame == list(range(1, trace.steps + 1))  # from frame 0's state on, one frame a step
+    assert sum(trace.mpjpe_mm) / trace.steps == pytest.approx(final["mpjpe_mm"], rel=1e-5)
+    assert sum(trace.object_pos_error_cm) / trace.steps == pytest.approx(final["object_pos_error_cm"], rel=1e-5)
+    assert sum(trace.object_ori_error_deg) / trace.steps == pytest.approx(final["object_ori_error_deg"], rel=1e-5)
+    assert all(abs(h) <= p + 1e-6 for h, p in zip(trace.object_height_error_cm, trace.object_pos_error_cm, strict=True))
+    assert trace.success == (final["success_rate"] == 1.0)
+    assert trace.ended_by  # a termination's name, or the clip's end
+    assert (trace.ended_by == [CLIP_END]) == trace.success
+    assert trace.object_termination_cm == pytest.approx(25.0)
+    assert episode_trace.main([str(box_run), "--every", "5", "--json", str(tmp_path / "t.json"), "--png", str(tmp_path / "t.png")]) == 0
+    out = capsys.readouterr().out
+    assert f"{trace.steps} steps" in out and out.count("\n| ") >= 2
+    saved = json.loads((tmp_path / "t.json").read_text())
+    assert saved["mpjpe_mm"] == trace.mpjpe_mm and saved["steps"] == trace.steps
+    assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"

@@ -1,0 +1,194 @@
+"""One evaluation episode, frame by frame: where a policy loses its clip or its object.
+
+``otr evaluate`` gives means over episodes; this follows the single env of the evaluation
+protocol (frame 0, no randomisation, mean action; the same loop as ``agents.evaluate``) and
+records after every step the reference frame, the root-relative MPJPE, how far the robot's
+anchor (torso) is from the reference anchor horizontally, and for the moving objects (box
+task) the position error, the height offset from the reference (negative: below it) and the
+orientation error, each a mean over the moving objects. It names what ended the episode:
+the termination terms that fired, or the clip's end.
+
+    python -m agents.episode_trace RUN_OR_CHECKPOINT [--reference REF] [--device cpu] \\
+        [--every 10] [--png trace.png] [--json trace.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from agents import runs
+from agents.devices import resolve_device
+from agents.evaluate import eval_env_overrides
+from agents.library import load_library, with_terrain
+from agents.policy import load_policy
+from agents.vecenv import make_vec_env
+from envs.mdp.metrics import mpjpe_root_relative
+from otr_gym.io import atomic_write, write_json
+from otr_gym.rotations import quat_error_angle
+
+#: What ``ended_by`` says for an episode that reached its clip's last frame.
+CLIP_END = "clip end"
+
+
+@dataclass
+class EpisodeTrace:
+    """Per-step values of one episode (lists of equal length, one entry per env step)."""
+
+    checkpoint: str
+    reference: str
+    clip_frames: int
+    frame: list[int]  # reference frame the step's state is compared with (50 Hz clips: 20 ms each)
+    mpjpe_mm: list[float]  # root-relative, 14 bodies (the evaluation's metric)
+    anchor_lag_cm: list[float]  # ‖xy of the reference anchor − xy of the robot's anchor‖, world
+    object_pos_error_cm: list[float] | None  # moving objects only; None on a task without objects
+    object_height_error_cm: list[float] | None  # z of the object − z of its reference, world
+    object_ori_error_deg: list[float] | None
+    ended_by: list[str]  # the termination terms that fired at the last step, or [CLIP_END]
+    success: bool
+    object_termination_cm: float | None = None  # the run's object position termination, if any
+
+    @property
+    def steps(self) -> int:
+        return len(self.frame)
+
+    def rows(self, every: int = 10) -> list[str]:
+        """A Markdown table: every ``every``-th step and the last."""
+        objects = self.object_pos_error_cm is not None
+        head = "| frame | MPJPE mm | anchor lag cm |" + (" object error cm | object height cm | object orientation deg |"
+                                                       if objects else "")
+        out = [head, "|" + "---|" * (head.count("|") - 1)]
+        picks = sorted(set(range(every - 1, self.steps, every)) | {self.steps - 1})
+        for i in picks:
+            row = f"| {self.frame[i]} | {self.mpjpe_mm[i]:.1f} | {self.anchor_lag_cm[i]:.1f} |"
+            if objects:
+                row += (f" {self.object_pos_error_cm[i]:.1f} | {self.object_height_error_cm[i]:+.1f} |"
+                        f" {self.object_ori_error_deg[i]:.1f} |")
+            out.append(row)
+        return out
+
+
+@torch.inference_mode()
+def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = None, device: str = "cpu",
+                  seed: int = 0) -> EpisodeTrace:
+    """Run one evaluation episode of a checkpoint (a run folder: its latest) on one clip."""
+    ckpt = runs.resolve_checkpoint(Path(run_or_checkpoint))
+    torch_device = resolve_device(device)
+    policy = load_policy(ckpt, torch_device)
+    if reference is None:
+        reference = policy.run_config["reference"]
+    overrides = eval_env_overrides(policy.train_cfg.env, randomize=False)
+    library = load_library(reference, policy.train_cfg.task, overrides)
+    if len(library.references) != 1:
+        raise ValueError(f"{reference}: {len(library.references)} clips; trace one clip at a time "
+                         "(pass --reference CLIP)")
+    overrides = with_terrain(overrides, library, [r.source for r in library.references])
+    env = make_vec_env(policy.train_cfg.task, list(library.references), 1, str(torch_device), overrides,
+                       evaluation=True, seed=seed)
+    vec = env.unwrapped
+    obs, _ = vec.reset(seed=seed)
+    has_objects = vec.tracking_state.objects is not None
+    term = vec.task.cfg.terminations.get("object_pos")
+    threshold = term.params.get("threshold_m") if term is not None else None
+    cols: dict[str, list] = {k: [] for k in ("frame", "mpjpe", "lag", "pos", "height", "ori")}
+    ended_by, success = [], False
+    try:
+        for _ in range(int(vec.motion.clip_length.max()) + 1):
+            actions = policy.act(TensorDict(dict(obs), batch_size=[1], device=vec.device))
+            frame = int(vec.command.frame[0])  # the step's state is compared with this frame, then it advances
+            obs, _, terminated, truncated, info = vec.step(actions)
+            s = vec.tracking_state
+            cols["frame"].append(frame)
+            cols["mpjpe"].append(1000.0 * float(mpjpe_root_relative(s)[0]))
+            cols["lag"].append(100.0 * float(torch.linalg.norm(s.ref_anchor_pos_w[0, :2] - s.anchor_pos_w[0, :2])))
+            if has_objects:
+                o = s.objects
+                cols["pos"].append(100.0 * float(torch.linalg.norm(o.ref_pos_w[0] - o.pos_w[0], dim=-1).mean()))
+                cols["height"].append(100.0 * float((o.pos_w[0, :, 2] - o.ref_pos_w[0, :, 2]).mean()))
+                cols["ori"].append(float(torch.rad2deg(quat_error_angle(o.ref_quat_w[0], o.quat_w[0])).mean()))
+            if bool(terminated[0]) or bool(truncated[0]):
+                ended_by = [k for k, v in info["terminations"].items() if bool(v[0])]
+                success = bool(info["success"][0])
+                if not ended_by:
+                    ended_by = [CLIP_END]
+                break
+    finally:
+        env.close()
+    return EpisodeTrace(
+        checkpoint=str(ckpt.path), reference=str(reference), clip_frames=int(vec.motion.clip_length[0]),
+        frame=cols["frame"], mpjpe_mm=cols["mpjpe"], anchor_lag_cm=cols["lag"],
+        object_pos_error_cm=cols["pos"] if has_objects else None,
+        object_height_error_cm=cols["height"] if has_objects else None,
+        object_ori_error_deg=cols["ori"] if has_objects else None,
+        ended_by=ended_by, success=success,
+        object_termination_cm=None if threshold is None else 100.0 * float(threshold))
+
+
+def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
+    """Panels against the reference frame: MPJPE and anchor lag; for objects, position and
+    height error (with the object termination's distance) and orientation error."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    objects = trace.object_pos_error_cm is not None
+    fig, axes = plt.subplots(1, 3 if objects else 1, figsize=(15 if objects else 5.5, 3.6), squeeze=False)
+    axes = axes[0]
+    frames = np.asarray(trace.frame)
+    axes[0].plot(frames, trace.mpjpe_mm, lw=1.1, label="MPJPE (mm)")
+    axes[0].plot(frames, np.asarray(trace.anchor_lag_cm) * 10.0, lw=1.1, label="anchor lag (mm)")
+    axes[0].set_title("tracking", fontsize=9)
+    if objects:
+        axes[1].plot(frames, trace.object_pos_error_cm, lw=1.1, label="position error")
+        axes[1].plot(frames, trace.object_height_error_cm, lw=1.1, label="height (object − reference)")
+        if trace.object_termination_cm is not None:
+            axes[1].axhline(trace.object_termination_cm, color="k", lw=0.8, ls="--", label="object termination")
+        axes[1].set_title("object (cm)", fontsize=9)
+        axes[2].plot(frames, trace.object_ori_error_deg, lw=1.1)
+        axes[2].set_title("object orientation error (deg)", fontsize=9)
+    for ax in axes:
+        ax.set_xlabel(f"reference frame (of {trace.clip_frames})")
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
+    fig.suptitle(f"{Path(trace.checkpoint).parent.name}/{Path(trace.checkpoint).name}: {end} at frame "
+                 f"{trace.frame[-1]}", fontsize=9)
+    fig.tight_layout()
+    try:
+        return atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=110))
+    finally:
+        plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("run_or_checkpoint", help="run folder (its latest checkpoint) or model_<it>.pt")
+    parser.add_argument("--reference", help="clip to trace (default: the run's reference)")
+    parser.add_argument("--device", default="cpu", help="torch/warp device (default: cpu)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--every", type=int, default=10, help="print every N-th step (default: 10)")
+    parser.add_argument("--png", help="write the per-frame curves here")
+    parser.add_argument("--json", help="write the per-frame values here")
+    args = parser.parse_args(argv)
+    if args.every < 1:
+        parser.error("--every must be >= 1")
+    trace = trace_episode(args.run_or_checkpoint, args.reference, args.device, args.seed)
+    print("\n".join(trace.rows(args.every)))
+    end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
+    print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")
+    if args.png:
+        print(f"wrote {plot_trace(trace, args.png)}")
+    if args.json:
+        print(f"wrote {write_json(args.json, {**asdict(trace), 'steps': trace.steps})}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
