@@ -1,7 +1,7 @@
 """Can the reference's hands hold its object? Kinematic playback of box references.
 
 The robot is put on the reference at every physics step (qpos interpolated between frames,
-qvel from the reference) and only the objects are simulated: MuJoCo on the CPU, the
+qvel from the reference; immovable within the step's contact solve) and only the objects are simulated: MuJoCo on the CPU, the
 OTR-G1-BoxTrack-v0 model (fitted hand boxes, grasp-fitted box, nominal mass and friction, no
 randomisation): what a policy that tracks perfectly, squeezing no harder than the reference's
 hands, does to the box. A box that slips or tips here asks the policy for more than tracking
@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from agents.train import parse_sets
 from envs.kinematic_playback import Playback, play
 from otr_gym.io import atomic_write, write_json
 
@@ -56,16 +57,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("references", nargs="+", help="box references (.npz), one clip each")
     parser.add_argument("--object-mesh", action="append", default=[], metavar="NAME=FILE",
                         help="mesh of an object the file does not embed (Holosoma's: largebox=…/largebox.obj)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="box config override by dotted path (configs/env/box.yaml), e.g. objects.grasp_fit=false")
     parser.add_argument("--png", help="box position and orientation error per frame, every reference")
     parser.add_argument("--json", help="per-frame errors of every reference")
     args = parser.parse_args(argv)
     meshes = dict(item.split("=", 1) for item in args.object_mesh if "=" in item)
     if len(meshes) != len(args.object_mesh):
         parser.error("--object-mesh takes NAME=FILE")
+    try:
+        overrides = parse_sets(args.set)
+    except ValueError as exc:
+        parser.error(str(exc))
     results = []
     for ref in args.references:
         # a reference with objects it cannot place (no mesh, no objects) is named by the loader
-        results.append(play(ref, meshes))
+        results.append(play(ref, meshes, overrides))
         print(f"{ref}: {results[-1].frames} frames played", file=sys.stderr)
     print("| reference | frames carried | box error cm mean / p95 | orientation error deg mean / max | box past 25 cm |")
     print("|---|---|---|---|---|")

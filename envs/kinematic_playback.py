@@ -3,6 +3,13 @@
 the CPU, the OTR-G1-BoxTrack-v0 model: fitted hand boxes, grasp-fitted box, nominal mass and
 friction, no randomisation). What a policy that tracks perfectly, squeezing no harder than the
 reference's hands, does to the box. ``benchmarks/grasp_playback.py`` is its command line.
+
+The robot must also be immovable *within* each step's contact solve: left as the unactuated G1,
+its links fall and swing under gravity during the step, and a hand accelerating away from the box
+faster than the contact's reference acceleration switches the contact off (MuJoCo's "satisfied"
+state) although it is millimetres deep. ``kinematic_robot`` gives the robot's joints an armature
+so large that neither gravity nor contact forces accelerate them: the contacts then act as
+against a body driven on the reference, as a perfect tracker's stiff joints would.
 """
 
 from __future__ import annotations
@@ -16,6 +23,7 @@ import torch
 
 from envs.box import make_box_task
 from envs.config import load_box_config
+from otr_gym.config import merge
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_apply_inverse, quat_error_angle
 
@@ -37,6 +45,18 @@ class Playback:
                 f"{np.percentile(pos, 95):.1f} | {ori.mean():.1f} / {ori.max():.1f} | {end} |")
 
 
+#: Armature (kg, kg·m²) added to every robot degree of freedom in the playback: 10⁶ × a G1 link's
+#: mass. 10³ gives the same frames carried on the three references of README (within 1 cm, 1°).
+ROBOT_ARMATURE = 1.0e6
+
+
+def kinematic_robot(model: mujoco.MjModel, robot_dofs: int) -> mujoco.MjModel:
+    """``model`` with the first ``robot_dofs`` degrees of freedom (the G1's free base and joints)
+    made immovable for the solver (in place; returned for chaining)."""
+    model.dof_armature[:robot_dofs] += ROBOT_ARMATURE
+    return model
+
+
 def _robot_state(motion, qpos_all: torch.Tensor, f: float) -> tuple[np.ndarray, np.ndarray]:
     """Reference qpos (root xyz, wxyz, joints) and qvel (root linear world, angular body, joints)
     at fractional frame f, linearly interpolated (quaternion renormalised)."""
@@ -50,20 +70,22 @@ def _robot_state(motion, qpos_all: torch.Tensor, f: float) -> tuple[np.ndarray, 
     return qpos.numpy(), qvel.double().numpy()
 
 
-def play(reference: str | Path, object_meshes: dict[str, str] | None = None) -> Playback:
+def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
+         env_overrides: dict | None = None) -> Playback:
     """Play one reference; ``object_meshes`` (name -> mesh file) for the reference's objects that
-    embed no mesh, names the reference does not have are ignored."""
+    embed no mesh, names the reference does not have are ignored; ``env_overrides`` change the
+    box config (nested keys of configs/env/box.yaml, e.g. {"objects": {"grasp_fit": False}})."""
     names = {t.name for t in Reference.load(reference).objects}
-    overrides = {"objects": {"overrides": {n: {"mesh": m} for n, m in (object_meshes or {}).items() if n in names}}}
-    cfg = load_box_config(None, overrides)
+    meshes = {"objects": {"overrides": {n: {"mesh": m} for n, m in (object_meshes or {}).items() if n in names}}}
+    cfg = load_box_config(None, merge(env_overrides or {}, meshes))
     task = make_box_task(reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True, autoreset=False)
     motion, objects = task.motion, task.objects
     if motion.num_clips != 1:
         raise ValueError(f"{reference}: one clip at a time ({motion.num_clips} given)")
-    model = task.backend.model
-    data = mujoco.MjData(model)
     last = int(motion.clip_length[0]) - 1
     nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
+    model = kinematic_robot(task.backend.model, nv)  # the task is ours alone: changed in place
+    data = mujoco.MjData(model)
     qpos_all = motion.qpos(torch.arange(last + 1)).double()
     qpos, qvel = _robot_state(motion, qpos_all, 0.0)
     data.qpos[:nq], data.qvel[:nv] = qpos, qvel

@@ -459,3 +459,24 @@ def test_kinematic_playback_leaves_an_uncarried_box_where_it_stands(box_referenc
     # once the reference leaves, the error is the reference's own displacement from the standing box
     np.testing.assert_allclose(result.pos_error_cm[-1], 100 * moved[result.ended_at], atol=0.5)
     assert max(result.ori_error_deg[:35]) < 1.0
+
+
+def test_the_played_back_robot_is_immovable_within_a_physics_step(box_reference):
+    """Unactuated, the G1 falls and swings under gravity inside a step, which can switch a deep
+    hand-box contact off; the playback's robot must not accelerate, while the box still does."""
+    import mujoco
+
+    from envs.kinematic_playback import kinematic_robot
+
+    task = make_box_task(box_reference, 1, "mujoco", "cpu", evaluation=True, autoreset=False)
+    model = task.backend.model
+    data = mujoco.MjData(model)
+    data.qpos[:36] = task.motion.qpos(torch.tensor([0]))[0].double().numpy()
+    data.qpos[36:39] = task.objects.pos_w[0, 0].numpy() + np.array([0.0, 0.0, 0.5])  # box dropped from 50 cm
+    data.qpos[39:43] = task.objects.quat_w[0, 0].numpy()
+    mujoco.mj_forward(model, data)
+    assert np.abs(data.qacc[:35]).max() > 5.0  # the free G1 falls (base) and its limbs swing
+    kinematic_robot(model, 35)
+    mujoco.mj_forward(model, data)
+    assert np.abs(data.qacc[:35]).max() < 1e-3  # what remains: 35 kg of G1 under gravity against 10⁶ kg
+    np.testing.assert_allclose(data.qacc[37], -9.81, atol=1e-3)  # the falling box: gravity alone
