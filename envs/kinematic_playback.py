@@ -46,7 +46,7 @@ class Playback:
 
 
 #: Armature (kg, kg·m²) added to every robot degree of freedom in the playback: 10⁶ × a G1 link's
-#: mass. 10³ gives the same frames carried on the three references of README (within 1 cm, 1°).
+#: mass. 10³ gives the same picture (ours and the demo: the same frames carried; Holosoma's 78, not 84).
 ROBOT_ARMATURE = 1.0e6
 
 
