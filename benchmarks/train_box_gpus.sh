@@ -16,6 +16,8 @@
 #   ours           our OMOMO sub3_largebox_003 reference, $IN/sub3_largebox_003.npz (`otr retarget`)
 #   ours_ori       ours with a coarse object orientation term (σ 1 rad): a variant, for direction
 #   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
+#   ours_q0 demo_q0  ours / the demo with the grasp fit's narrowing off (objects.grasp_fit_quantile=0):
+#                  the kinematic playback carries the demo's box to frame 610 that way (290 fitted)
 #   holo           Holosoma's reference of the clip, $IN/sub3_largebox_003_mj_w_obj.npz + $IN/largebox.obj
 #   no_contact     ours, ABLATION=no_contact          no_object_vel   ours, ABLATION=no_object_vel
 #   demo           the `otr demo` box carry, $IN/demo_box_carry.npz (floor to table)
@@ -45,14 +47,14 @@ ours=$IN/sub3_largebox_003.npz
 reference() {
   case $1 in
     holo) echo "$IN/sub3_largebox_003_mj_w_obj.npz" ;;
-    demo) echo "$IN/demo_box_carry.npz" ;;
+    demo|demo_q0) echo "$IN/demo_box_carry.npz" ;;
     *) echo "$ours" ;;
   esac
 }
 
 job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
   case $1 in
-    ours|ours_ori|ours_tip|demo|throughput) ;;
+    ours|ours_ori|ours_tip|ours_q0|demo|demo_q0|throughput) ;;
     holo) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
     no_contact|no_object_vel) echo "ABLATION=$1" ;;
     *) echo "unknown job '$1'" >&2; return 1 ;;
@@ -65,6 +67,7 @@ job_sets() {  # the job's --set overrides, after the caller's SETS
 env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0" ;; esac
   [ "$1" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
 env.terminations.object_ori.params.threshold_rad=1.0"
+  case $1 in *_q0) echo "env.objects.grasp_fit_quantile=0" ;; esac
   return 0
 }
 
