@@ -24,13 +24,15 @@ from tensordict import TensorDict
 
 from agents import runs
 from agents.devices import resolve_device
-from agents.evaluate import eval_env_overrides
-from agents.library import load_library, with_terrain
+from agents.evaluate import evaluation_library
 from agents.policy import load_policy
 from agents.vecenv import make_vec_env
-from envs.mdp.metrics import mpjpe_root_relative
-from otr_gym.io import atomic_write, write_json
-from otr_gym.rotations import quat_error_angle
+from envs.mdp.metrics import (
+    mpjpe_root_relative,
+    object_orientation_error_rad,
+    object_position_error_m,
+)
+from otr_gym.io import save_figure, write_json
 
 #: What ``ended_by`` says for an episode that reached its clip's last frame.
 CLIP_END = "clip end"
@@ -80,14 +82,11 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     ckpt = runs.resolve_checkpoint(Path(run_or_checkpoint))
     torch_device = resolve_device(device)
     policy = load_policy(ckpt, torch_device)
-    if reference is None:
-        reference = policy.run_config["reference"]
-    overrides = eval_env_overrides(policy.train_cfg.env, randomize=False)
-    library = load_library(reference, policy.train_cfg.task, overrides)
+    library, overrides = evaluation_library(policy, reference, randomize=False)
+    reference = library.source
     if len(library.references) != 1:
         raise ValueError(f"{reference}: {len(library.references)} clips; trace one clip at a time "
                          "(pass --reference CLIP)")
-    overrides = with_terrain(overrides, library, [r.source for r in library.references])
     env = make_vec_env(policy.train_cfg.task, list(library.references), 1, str(torch_device), overrides,
                        evaluation=True, seed=seed)
     vec = env.unwrapped
@@ -108,9 +107,9 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
             cols["lag"].append(100.0 * float(torch.linalg.norm(s.ref_anchor_pos_w[0, :2] - s.anchor_pos_w[0, :2])))
             if has_objects:
                 o = s.objects
-                cols["pos"].append(100.0 * float(torch.linalg.norm(o.ref_pos_w[0] - o.pos_w[0], dim=-1).mean()))
+                cols["pos"].append(100.0 * float(object_position_error_m(s)[0].mean()))
                 cols["height"].append(100.0 * float((o.pos_w[0, :, 2] - o.ref_pos_w[0, :, 2]).mean()))
-                cols["ori"].append(float(torch.rad2deg(quat_error_angle(o.ref_quat_w[0], o.quat_w[0])).mean()))
+                cols["ori"].append(float(torch.rad2deg(object_orientation_error_rad(s)[0]).mean()))
             if bool(terminated[0]) or bool(truncated[0]):
                 ended_by = [k for k, v in info["terminations"].items() if bool(v[0])]
                 success = bool(info["success"][0])
@@ -161,10 +160,7 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
     fig.suptitle(f"{Path(trace.checkpoint).parent.name}/{Path(trace.checkpoint).name}: {end} at frame "
                  f"{trace.frame[-1]}", fontsize=9)
     fig.tight_layout()
-    try:
-        return atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=110))
-    finally:
-        plt.close(fig)
+    return save_figure(fig, out_png)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -65,6 +65,16 @@ def eval_env_overrides(train_env_overrides: dict, randomize: bool) -> dict:
     return out
 
 
+def evaluation_library(policy: TrainedPolicy, reference: str | Path | None, randomize: bool):
+    """(clip library, env overrides) of the evaluation protocol for ``policy``'s task and config;
+    ``reference`` None: the run's own."""
+    if reference is None:
+        reference = policy.run_config["reference"]
+    overrides = eval_env_overrides(policy.train_cfg.env, randomize)
+    library = load_library(reference, policy.train_cfg.task, overrides)
+    return library, with_terrain(overrides, library, [r.source for r in library.references])
+
+
 @torch.inference_mode()
 def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
     """One episode per env from the env's (re)start with ``policy.act(obs TensorDict) -> actions``;
@@ -101,11 +111,7 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
     ckpts = runs.checkpoints(target) if target.is_dir() and not last_only else [runs.resolve_checkpoint(target)]
     torch_device = resolve_device(device)
     first = load_policy(ckpts[-1], torch_device)
-    if reference is None:
-        reference = first.run_config["reference"]
-    overrides = eval_env_overrides(first.train_cfg.env, randomize)
-    library = load_library(reference, first.train_cfg.task, overrides)
-    overrides = with_terrain(overrides, library, [r.source for r in library.references])
+    library, overrides = evaluation_library(first, reference, randomize)
     if num_envs is None:
         num_envs = len(library.references) * (256 if randomize else 1)
     if num_envs < 1:

@@ -13,6 +13,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from agents import runs  # noqa: E402
+from otr_gym.io import save_figure  # noqa: E402
 
 #: TensorBoard tag -> panel title; rsl-rl's logger writes the first three, the adapter the rest.
 TRAINING_PANELS = {
@@ -88,7 +89,7 @@ def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str]
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
@@ -110,7 +111,7 @@ def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
         ax.grid(alpha=0.3)
     fig.suptitle(Path(run_dir).name, fontsize=10)
     fig.tight_layout()
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 #: Per-clip training curves (``agents.metrics.ClipRolloutStats``): tag suffix -> panel title.
@@ -147,7 +148,7 @@ def plot_clip_curves(run_dir: str | Path, out_png: str | Path, smooth: int = 10)
     axes[0, 0].legend(fontsize=7, ncol=2)
     fig.suptitle(f"{Path(run_dir).name}: per clip (running mean over {smooth} iterations)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 def plot_evaluation(results: dict, out_png: str | Path) -> Path:
@@ -165,7 +166,7 @@ def plot_evaluation(results: dict, out_png: str | Path) -> Path:
     twin.set_ylim(-5, 105)
     ax.set_title(f"{results['run']} on {results['reference']['name']}", fontsize=9)
     fig.tight_layout()
-    return _save(fig, out_png)
+    return save_figure(fig, out_png)
 
 
 def _panel_grid(n: int):
@@ -176,13 +177,6 @@ def _panel_grid(n: int):
     for ax in axes.flat[n:]:
         ax.set_visible(False)
     return fig, list(axes.flat[:n])
-
-
-def _save(fig, out_png: str | Path) -> Path:
-    try:
-        return runs.atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=110))
-    finally:
-        plt.close(fig)
 
 
 def training_summary(run_dir: str | Path) -> dict:

@@ -25,7 +25,7 @@ import numpy as np
 
 from agents.train import parse_sets
 from envs.kinematic_playback import Playback, play
-from otr_gym.io import atomic_write, write_json
+from otr_gym.io import save_figure, write_json
 
 
 def plot(results: list[Playback], out_png: str | Path) -> Path:
@@ -46,10 +46,7 @@ def plot(results: list[Playback], out_png: str | Path) -> Path:
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    try:
-        return atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=110))
-    finally:
-        plt.close(fig)
+    return save_figure(fig, out_png)
 
 
 def main(argv: list[str] | None = None) -> int:

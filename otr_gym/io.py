@@ -72,6 +72,16 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool =
     return atomic_write(path, lambda f: f.write(data))
 
 
+def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:
+    """A matplotlib figure as PNG, atomically; the figure is closed either way."""
+    import matplotlib.pyplot as plt
+
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=dpi))
+    finally:
+        plt.close(fig)
+
+
 def write_json(path: str | Path, payload, indent: int = 2) -> Path:
     """JSON atomically; NaN/inf are refused (they are not JSON)."""
     return atomic_write(path, lambda f: json.dump(payload, f, indent=indent, ensure_ascii=False, allow_nan=False),

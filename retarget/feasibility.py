@@ -514,7 +514,7 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from otr_gym.io import atomic_write
+    from otr_gym.io import save_figure
 
     t = r.time_s
     regions = {"legs": slice(0, 12), "waist": slice(12, 15), "arms": slice(15, 29)}
@@ -562,10 +562,7 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
             ax.axvspan(t[a] - 0.5 / r.fps, t[b] + 0.5 / r.fps, color="tab:red", alpha=0.08, lw=0)
         ax.grid(alpha=0.3)
     fig.suptitle(f"dynamic feasibility: {Path(r.source).name} (blue: flight, red: flagged)", fontsize=10)
-    try:
-        return atomic_write(out_png, lambda f: fig.savefig(f, format="png", dpi=80))
-    finally:
-        plt.close(fig)
+    return save_figure(fig, out_png, dpi=80)
 
 
 def write_feasibility(reference, png: str | Path | None = None, json_path: str | Path | None = None,

@@ -43,7 +43,7 @@ def test_runs_are_drawn_against_learning_time(tmp_path, monkeypatch):
     fast = _fake_run(tmp_path / "fast", [6.0] * 4, [0.0] * 4, [0.1, 0.2, 0.3, 0.4])
     slow = _fake_run(tmp_path / "slow", [30.0] * 2, [30.0] * 2, [0.0, 0.5])
     drawn = {}
-    real_save = plots._save
+    real_save = plots.save_figure
 
     def capture(fig, out_png):
         ax = fig.axes[0]
@@ -51,7 +51,7 @@ def test_runs_are_drawn_against_learning_time(tmp_path, monkeypatch):
         drawn["lines"] = {ln.get_label(): (list(ln.get_xdata()), list(ln.get_ydata())) for ln in ax.get_lines()}
         return real_save(fig, out_png)
 
-    monkeypatch.setattr(plots, "_save", capture)
+    monkeypatch.setattr(plots, "save_figure", capture)
     png = plots.plot_runs([fast, slow], tmp_path / "compare.png", labels=["fast", "slow"])
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert drawn["title"] == plots.TRAINING_PANELS["metric/success_rate"]

@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import torch
 
+from envs.mdp.metrics import object_orientation_error_rad
 from envs.mdp.state import TrackingState
-from otr_gym.rotations import projected_gravity, quat_error_angle
+from otr_gym.rotations import projected_gravity
 
 
 def anchor_height_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
@@ -38,5 +39,4 @@ def object_orientation_error(s: TrackingState, threshold_rad: float) -> torch.Te
     """Any moving object turned more than threshold (rad) from its reference orientation: a box
     tipped over in the hands ends the episode instead of drifting where the orientation reward
     (σ 0.4 rad) no longer pulls. Not in the default set."""
-    o = s.objects
-    return torch.any(quat_error_angle(o.ref_quat_w, o.quat_w) > threshold_rad, dim=-1)
+    return torch.any(object_orientation_error_rad(s) > threshold_rad, dim=-1)
