@@ -18,6 +18,8 @@
 #   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
 #   ours_q0 demo_q0  ours / the demo with the grasp fit's narrowing off (objects.grasp_fit_quantile=0):
 #                  the kinematic playback carries the demo's box to frame 610 that way (290 fitted)
+#   ours_wrist     ours with each hand's wrist box counted as the hand (objects.hand_contact_roots: the
+#                  wrist_pitch links; their contacts no longer undesired): force pairs, grasp fit, windows
 #   holo           Holosoma's reference of the clip, $IN/sub3_largebox_003_mj_w_obj.npz + $IN/largebox.obj
 #   no_contact     ours, ABLATION=no_contact          no_object_vel   ours, ABLATION=no_object_vel
 #   demo           the `otr demo` box carry, $IN/demo_box_carry.npz (floor to table)
@@ -54,7 +56,7 @@ reference() {
 
 job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
   case $1 in
-    ours|ours_ori|ours_tip|ours_q0|demo|demo_q0|throughput) ;;
+    ours|ours_ori|ours_tip|ours_q0|ours_wrist|demo|demo_q0|throughput) ;;
     holo) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
     no_contact|no_object_vel) echo "ABLATION=$1" ;;
     *) echo "unknown job '$1'" >&2; return 1 ;;
@@ -68,6 +70,8 @@ env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.si
   [ "$1" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
 env.terminations.object_ori.params.threshold_rad=1.0"
   case $1 in *_q0) echo "env.objects.grasp_fit_quantile=0" ;; esac
+  [ "$1" = ours_wrist ] && echo "env.objects.hand_contact_roots=[left_wrist_pitch_link,right_wrist_pitch_link] \
+env.rewards.undesired_contacts.params.exclude=[ankle_roll,wrist_yaw,wrist_pitch]"
   return 0
 }
 

@@ -55,9 +55,13 @@ from otr_gym.rotations import quat_apply, quat_mul
 _PER_WORLD_FIELDS = ("geom_friction", "body_ipos", "body_mass", "body_inertia")  # §6, robot and objects
 
 
-def contact_pairs(objects: SceneObjects, hands, support_ground: bool) -> tuple[list[ContactPair], list[ContactPair]]:
-    """(hand–object pairs, H-major then M; object–support pairs, M-major then S)."""
-    hand_pairs = [ContactPair(f"{h}|{o.body}", ("body", h), ("body", o.body)) for h in hands for o in objects.moving]
+def contact_pairs(objects: SceneObjects, hands, support_ground: bool,
+                  hand_roots=None) -> tuple[list[ContactPair], list[ContactPair]]:
+    """(hand–object pairs, H-major then M; object–support pairs, M-major then S). A hand's pair
+    takes every geom of the subtree of its root in ``hand_roots`` (default: the hand body)."""
+    roots = hands if hand_roots is None else hand_roots
+    hand_pairs = [ContactPair(f"{h}|{o.body}", ("subtree", r), ("body", o.body))
+                  for h, r in zip(hands, roots, strict=True) for o in objects.moving]
     supports = ([("ground", ("geom", GROUND_GEOM))] if support_ground else []) + \
         [(s.name, ("body", s.body)) for s in objects.static]
     support_pairs = [ContactPair(f"{o.body}|{name}", ("body", o.body), ref)
@@ -160,6 +164,7 @@ class BoxTrackingTask(TrackingTask):
             "static": [o.name for o in self.scene.static],
             "supports": list(self.objects.support_names),
             "hands": list(c.hand_bodies),
+            "hand_contact_roots": list(c.hand_roots),
             "hand_point_offset_m": list(c.hand_point_offset_m),
             "collision": {o.name: o.method for o in self.scene.objects},
             "grasp_shrink_m": {o.name: o.grasp_shrink_m.tolist() for o in self.scene.objects
@@ -193,7 +198,8 @@ def make_box_task(reference: ReferenceSource, num_envs: int, backend: str, devic
                 f"(x = {', '.join(f'{x:g}' for x in np.unique(terrain.clip_origin_w[:, 0]))} m): a fixed body has one "
                 "pose, so train the terrain clips and the clips with static objects separately")
     scene = scene_objects(refs, cfg.objects)
-    hand_pairs, support_pairs = contact_pairs(scene, cfg.objects.hand_bodies, cfg.objects.support_ground)
+    hand_pairs, support_pairs = contact_pairs(scene, cfg.objects.hand_bodies, cfg.objects.support_ground,
+                                              cfg.objects.hand_roots)
     pairs = hand_pairs + support_pairs
     model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim, terrain=terrain)
     if cfg.objects.grasp_fit:

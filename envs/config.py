@@ -282,6 +282,10 @@ class ObjectsCfg:
     #: centre of the G1 hand's (retargeting) collision capsule, between palm and fingers.
     hand_bodies: tuple[str, ...] = robot.HANDS
     hand_point_offset_m: tuple[float, float, float] = (0.11, 0.0, 0.0)
+    #: Per hand, the body whose subtree's collision geoms are that hand in contact: its hand–object
+    #: force pairs, the grasp fit and the geometric windows. Empty: each hand body's own subtree
+    #: (the G1's wrist_yaw link: palm and fingers). The wrist_pitch links add the wrist boxes.
+    hand_contact_roots: tuple[str, ...] = ()
     #: Robot–object proximity windows: hand surface within this distance (m) of the object
     #: surface, from the reference's contact annotations (``contact_distance``) when present,
     #: else from the reference geometry (hand collision boxes vs. object collision shapes).
@@ -300,6 +304,16 @@ class ObjectsCfg:
     #: object held at the start frame (a hand window open) instead follows the robot's root noise.
     reset_noise_pos_m: tuple[float, float, float] = (0.05, 0.05, 0.0)
     randomization: ObjectRandomizationCfg = field(default_factory=ObjectRandomizationCfg)
+
+    @property
+    def hand_roots(self) -> tuple[str, ...]:
+        """Per hand, the root of its contact subtree (``hand_contact_roots`` or the hand bodies)."""
+        if not self.hand_contact_roots:
+            return tuple(self.hand_bodies)
+        if len(self.hand_contact_roots) != len(self.hand_bodies):
+            raise ValueError(f"objects.hand_contact_roots {list(self.hand_contact_roots)}: one body per hand of "
+                             f"objects.hand_bodies {list(self.hand_bodies)}")
+        return tuple(self.hand_contact_roots)
 
 
 def _box_sim() -> SimCfg:

@@ -12,6 +12,7 @@ import warnings
 from types import SimpleNamespace
 
 import gymnasium
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -207,6 +208,64 @@ def test_hand_box_force_is_measured_when_the_box_is_pressed_on_the_hand(box_refe
     task.backend.reset(torch.ones(1, dtype=torch.bool), qpos, qvel)
     task.step(torch.zeros(1, 29))
     assert torch.all(task.tracking_state.objects.hand_force_n == 0.0)
+
+
+@pytest.mark.parametrize("backend", ["mujoco", "warp"])
+def test_a_hand_s_contact_root_decides_whether_its_wrist_box_presses_for_the_hand(backend, box_reference):
+    """The box pressed 1 cm into the left wrist box (on ``left_wrist_pitch_link``), clear of the
+    palm and fingers: the hand's force counts it only when the wrist_pitch link roots the hand."""
+    if backend == "warp":
+        pytest.importorskip("warp").config.quiet = True
+    probe = make_box_task(box_reference, 1, "mujoco", "cpu", evaluation=True)
+    probe.reset(seed=0)
+    m = probe.backend.model
+    d = mujoco.MjData(m)
+    d.qpos[:] = probe.backend.qpos[0].numpy()
+    mujoco.mj_kinematics(m, d)
+    wrist = m.geom("left_wrist_collision").id
+    box = [g for g in range(m.ngeom) if m.geom_bodyid[g] == m.body("object/box").id]
+    robot_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] not in (0, m.body("object/box").id)
+                   and m.geom_contype[g] | m.geom_conaffinity[g]]
+
+    def distance(g: int) -> float:
+        return min(mujoco.mj_geomDistance(m, d, g, b, 0.5, np.zeros(6)) for b in box)
+
+    up_out, centre = np.array([0.0, 1.0, 1.0]) / math.sqrt(2.0), d.geom_xpos[wrist].copy()
+    lo, hi = 0.0, 0.5  # box centre along up_out from the wrist box: 1 cm into it
+    for _ in range(40):
+        d.qpos[36:39] = centre + 0.5 * (lo + hi) * up_out
+        mujoco.mj_kinematics(m, d)
+        lo, hi = (0.5 * (lo + hi), hi) if distance(wrist) < -0.01 else (lo, 0.5 * (lo + hi))
+    gaps = {m.geom(g).name: distance(g) for g in robot_geoms}
+    assert [name for name, gap in gaps.items() if gap <= 0.0] == ["left_wrist_collision"], gaps
+    assert gaps["left_wrist_collision"] == pytest.approx(-0.01, abs=1e-4)
+    assert min(gaps[f"left_{g}_collision"] for g in ("palm", "finger", "fingertip")) > 0.02
+    forces = {}
+    for roots in ((), ("left_wrist_pitch_link", "right_wrist_pitch_link")):
+        cfg = BoxEnvCfg()
+        cfg.objects.hand_contact_roots = roots
+        task = make_box_task(box_reference, 1, backend, "cpu", cfg=cfg, evaluation=True)
+        task.reset(seed=0)
+        qpos, qvel = task.backend.qpos.clone(), task.backend.qvel.clone()
+        qpos[0, 36:43] = torch.as_tensor(np.r_[d.qpos[36:39], 1.0, 0.0, 0.0, 0.0], dtype=qpos.dtype)
+        qvel[0, 35:] = 0.0
+        task.backend.reset(torch.ones(1, dtype=torch.bool), qpos, qvel)
+        task.step(torch.zeros(1, 29))
+        forces[roots] = task.tracking_state.objects.hand_force_n[0, :, 0]
+        assert task.policy_metadata()["objects"]["hand_contact_roots"] == list(roots or cfg.objects.hand_bodies)
+    assert torch.all(forces[()] == 0.0)  # the palm and fingers do not touch it
+    wrist_force = forces[("left_wrist_pitch_link", "right_wrist_pitch_link")]
+    assert wrist_force[0] > 5.0 and wrist_force[1] == 0.0, wrist_force
+
+
+def test_a_hand_contact_root_must_hold_its_hand(box_reference):
+    cfg = BoxEnvCfg()
+    cfg.objects.hand_contact_roots = ("left_wrist_pitch_link",)
+    with pytest.raises(ValueError, match=r"one body per hand"):
+        make_box_task(box_reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True)
+    cfg.objects.hand_contact_roots = ("right_wrist_pitch_link", "left_wrist_pitch_link")
+    with pytest.raises(KeyError, match=r"'right_wrist_pitch_link' is not 'left_wrist_yaw_link' or a body above it"):
+        make_box_task(box_reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True)
 
 
 def test_objects_start_on_the_reference_pose_with_its_velocity(box_reference):

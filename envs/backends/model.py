@@ -32,14 +32,15 @@ _REDUCE_NETFORCE = 3
 
 @dataclass(frozen=True)
 class ContactPair:
-    """A contact sensor between two model objects, each ("body" | "geom", name)."""
+    """A contact sensor between two model objects, each ("body" | "subtree" | "geom", name);
+    "subtree" matches the geoms of the body and of every body below it."""
 
     key: str
     first: tuple[str, str]
     second: tuple[str, str]
 
 
-_OBJ_TYPES = {"body": mujoco.mjtObj.mjOBJ_BODY, "geom": mujoco.mjtObj.mjOBJ_GEOM}
+_OBJ_TYPES = {"body": mujoco.mjtObj.mjOBJ_BODY, "subtree": mujoco.mjtObj.mjOBJ_XBODY, "geom": mujoco.mjtObj.mjOBJ_GEOM}
 
 
 def build_sim_model(contact_bodies: Sequence[str], objects=None, contact_pairs: Sequence[ContactPair] = (),

@@ -17,8 +17,9 @@ threshold: ``proximity_threshold_m`` (default 5 cm) for a hand and an object,
 ``support_threshold_m`` (2 cm) for an object and a support. Hand distances are the reference's
 ``contact_distance`` annotation of the hand body against the object's channel when the file
 has it (ours do); otherwise (Holosoma's files) they are measured on the reference at load time
-with MuJoCo's ``mj_geomDistance`` between the hand's collision capsule and the object's
-collision shapes posed as in the reference. Object–support distances always come from the
+with MuJoCo's ``mj_geomDistance`` between the hand's collision geoms (those of the subtree of
+its ``objects.hand_contact_roots`` body) and the object's collision shapes posed as in the
+reference. Object–support distances always come from the
 geometry (annotations are robot–channel only). Gaps shorter than ``window_min_gap_s`` are
 closed; inside a window the gate ramps linearly from 1/k to 1 over its first k =
 ``window_ramp_s``·fps frames and is cut to 0 at its end (FK: "ramp the gate on and cut it off
@@ -211,15 +212,20 @@ class _Geometry:
         self.model, self.data = model, mujoco.MjData(model)
         self.cfg = cfg
 
-        def geoms_of(body: str) -> list[int]:
+        def geoms_of(body: str, subtree: bool = False) -> list[int]:
             b = model.body(body).id
-            return [g for g in range(model.ngeom) if model.geom_bodyid[g] == b and model.geom_contype[g] | model.geom_conaffinity[g]]
+            bodies = {b} | ({c for c in range(model.nbody) if _descends(model, c, b)} if subtree else set())
+            return [g for g in range(model.ngeom)
+                    if model.geom_bodyid[g] in bodies and model.geom_contype[g] | model.geom_conaffinity[g]]
 
         self.hand_geoms = []
-        for hand in cfg.hand_bodies:
-            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, hand) < 0:
-                raise KeyError(f"objects.hand_bodies: '{hand}' is not a body of the simulation model")
-            self.hand_geoms.append(geoms_of(hand))
+        for hand, root in zip(cfg.hand_bodies, cfg.hand_roots):
+            for key, name in (("hand_bodies", hand), ("hand_contact_roots", root)):
+                if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name) < 0:
+                    raise KeyError(f"objects.{key}: '{name}' is not a body of the simulation model")
+            if not _descends(model, model.body(hand).id, model.body(root).id):
+                raise KeyError(f"objects.hand_contact_roots: '{root}' is not '{hand}' or a body above it")
+            self.hand_geoms.append(geoms_of(root, subtree=True))
         self.object_geoms = {o.name: geoms_of(o.body) for o in objects.objects}
         self.ground = [model.geom(GROUND_GEOM).id]
         self.robot_nq = model.nq - 7 * len(objects.moving)
@@ -252,6 +258,13 @@ class _Geometry:
                     support_d[t, k, s] = min(mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
                                              for a in obj for b in support)
         return hand_d, support_d
+
+
+def _descends(model: mujoco.MjModel, body: int, root: int) -> bool:
+    """Whether ``body`` is ``root`` or below it in the kinematic tree."""
+    while body > root:
+        body = int(model.body_parentid[body])
+    return body == root
 
 
 def _annotated_hand_distances(ref: Reference, moving: list[int], hands: Sequence[str]) -> np.ndarray | None:
