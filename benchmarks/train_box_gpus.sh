@@ -16,8 +16,8 @@
 #   ours           our OMOMO sub3_largebox_003 reference, $IN/sub3_largebox_003.npz (`otr retarget`)
 #   ours_ori       ours with a coarse object orientation term (σ 1 rad): a variant, for direction
 #   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
-#   ours_q0 demo_q0  ours / the demo with the grasp fit's narrowing off (objects.grasp_fit_quantile=0):
-#                  the kinematic playback carries the demo's box to frame 610 that way (290 fitted)
+#   ours_q0 demo_q0 holo_q0  ours / the demo / Holosoma's with the grasp fit's narrowing off
+#                  (objects.grasp_fit_quantile=0): the demo is learned that way (README), not with the fit
 #   ours_wrist     ours with each hand's wrist box counted as the hand (objects.hand_contact_roots: the
 #                  wrist_pitch links; their contacts no longer undesired): force pairs, grasp fit, windows
 #   holo           Holosoma's reference of the clip, $IN/sub3_largebox_003_mj_w_obj.npz + $IN/largebox.obj
@@ -48,7 +48,7 @@ ours=$IN/sub3_largebox_003.npz
 
 reference() {
   case $1 in
-    holo) echo "$IN/sub3_largebox_003_mj_w_obj.npz" ;;
+    holo|holo_q0) echo "$IN/sub3_largebox_003_mj_w_obj.npz" ;;
     demo|demo_q0) echo "$IN/demo_box_carry.npz" ;;
     *) echo "$ours" ;;
   esac
@@ -57,7 +57,7 @@ reference() {
 job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
   case $1 in
     ours|ours_ori|ours_tip|ours_q0|ours_wrist|demo|demo_q0|throughput) ;;
-    holo) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
+    holo|holo_q0) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
     no_contact|no_object_vel) echo "ABLATION=$1" ;;
     *) echo "unknown job '$1'" >&2; return 1 ;;
   esac

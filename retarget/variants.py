@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from otr_gym.io import atomic_path, write_json
+from otr_gym.io import atomic_path, save_figure, write_json
 from retarget.pipeline import ConfigError, RetargetConfig, load_config, run_batch
 from retarget.shapes import (
     ORIGINAL,
@@ -291,11 +291,7 @@ def plot_recall_precision(records: list[dict], path: str | Path, title: str = ""
     if title:
         fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=130, format="png")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=130)
 
 
 def read_records(out: Path, demo: Path) -> list[dict]:

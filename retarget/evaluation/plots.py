@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from otr_gym.io import save_figure
 from retarget.evaluation.sequence import TABLE_COLUMNS
 
 #: Colours of a timeline cell: nothing, H only, R only, both.
@@ -77,11 +78,7 @@ def plot_contact_timeline(record: dict, path: str | Path) -> Path:
     fig.suptitle(f"{record['name']} vs {Path(record['demonstration']).name} (sc {record['metrics']['sc']:.2f})",
                  fontsize=10, x=0.01, ha="left")
     fig.tight_layout(rect=(0, 0, 1, 0.95))
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_metric_distributions(records: list[dict], path: str | Path) -> Path:
@@ -108,8 +105,4 @@ def plot_metric_distributions(records: list[dict], path: str | Path) -> Path:
         ax.axis("off")
     fig.suptitle(f"metric distributions over {len(records)} sequence(s)", fontsize=10)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
