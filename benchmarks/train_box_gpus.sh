@@ -18,6 +18,8 @@
 #   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
 #   ours_q0 demo_q0 holo_q0  ours / the demo / Holosoma's with the grasp fit's narrowing off
 #                  (objects.grasp_fit_quantile=0): the demo is learned that way (README), not with the fit
+#   ours_xy demo_q0_xy  ours / demo_q0 plus a termination when the torso is > 0.5 m from its reference
+#                  horizontally (anchor_horizontal_error; the demo's walk-in trails by up to 70 cm)
 #   ours_wrist     ours with each hand's wrist box counted as the hand (objects.hand_contact_roots: the
 #                  wrist_pitch links; their contacts no longer undesired): force pairs, grasp fit, windows
 #   holo           Holosoma's reference of the clip, $IN/sub3_largebox_003_mj_w_obj.npz + $IN/largebox.obj
@@ -49,14 +51,14 @@ ours=$IN/sub3_largebox_003.npz
 reference() {
   case $1 in
     holo|holo_q0) echo "$IN/sub3_largebox_003_mj_w_obj.npz" ;;
-    demo|demo_q0) echo "$IN/demo_box_carry.npz" ;;
+    demo|demo_q0|demo_q0_xy) echo "$IN/demo_box_carry.npz" ;;
     *) echo "$ours" ;;
   esac
 }
 
 job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
   case $1 in
-    ours|ours_ori|ours_tip|ours_q0|ours_wrist|demo|demo_q0|throughput) ;;
+    ours|ours_ori|ours_tip|ours_q0|ours_wrist|ours_xy|demo|demo_q0|demo_q0_xy|throughput) ;;
     holo|holo_q0) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
     no_contact|no_object_vel) echo "ABLATION=$1" ;;
     *) echo "unknown job '$1'" >&2; return 1 ;;
@@ -69,7 +71,9 @@ job_sets() {  # the job's --set overrides, after the caller's SETS
 env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0" ;; esac
   [ "$1" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
 env.terminations.object_ori.params.threshold_rad=1.0"
-  case $1 in *_q0) echo "env.objects.grasp_fit_quantile=0" ;; esac
+  case $1 in *_q0|*_q0_xy) echo "env.objects.grasp_fit_quantile=0" ;; esac
+  case $1 in *_xy) echo "env.terminations.anchor_xy.fn=anchor_horizontal_error \
+env.terminations.anchor_xy.params.threshold_m=0.5" ;; esac
   [ "$1" = ours_wrist ] && echo "env.objects.hand_contact_roots=[left_wrist_pitch_link,right_wrist_pitch_link] \
 env.rewards.undesired_contacts.params.exclude=[ankle_roll,wrist_yaw,wrist_pitch]"
   return 0

@@ -323,6 +323,9 @@ def test_terminations_fire_only_beyond_their_thresholds():
     low = replace(s, body_pos_w=s.body_pos_w - torch.tensor([0.0, 0.0, 0.3]))
     assert terminations.anchor_height_error(low, 0.25).all()
     assert terminations.end_effector_height_error(low, 0.25).all()
+    assert not terminations.anchor_height_error(_state(offset_m=0.6), 0.25).any()  # a lag is not a height error
+    for offset, fires in ((0.0, False), (0.4, False), (0.6, True), (-0.6, True)):
+        assert terminations.anchor_horizontal_error(_state(offset_m=offset), 0.5).tolist() == [fires] * 3
     # the reference torso is upright, so a roll r changes projected-gravity z by 1 − cos r:
     # 0.64 at 1.2 rad (kept), 0.93 at 1.5 rad (terminated)
     for roll, fires in ((1.2, False), (1.5, True)):

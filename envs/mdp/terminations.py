@@ -15,6 +15,13 @@ def anchor_height_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
     return torch.abs(s.ref_anchor_pos_w[:, 2] - s.anchor_pos_w[:, 2]) > threshold_m
 
 
+def anchor_horizontal_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
+    """‖xy_refAnchor − xy_robotAnchor‖ > threshold (m, world): a robot trailing its reference
+    (the demo box carry's walk to the box lags 70 cm without ending an episode under §5's
+    height and tilt tests). Not in the default set."""
+    return torch.linalg.norm(s.ref_anchor_pos_w[:, :2] - s.anchor_pos_w[:, :2], dim=-1) > threshold_m
+
+
 def anchor_gravity_error(s: TrackingState, threshold: float) -> torch.Tensor:
     """|Δ projected-gravity z| of the anchor > threshold (a tilt test that ignores yaw)."""
     g_ref = projected_gravity(s.ref_anchor_quat_w)[:, 2]
