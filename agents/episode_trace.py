@@ -28,6 +28,7 @@ from agents.evaluate import evaluation_library
 from agents.policy import load_policy
 from agents.vecenv import make_vec_env
 from envs.mdp.metrics import (
+    anchor_horizontal_error_m,
     mpjpe_root_relative,
     object_orientation_error_rad,
     object_position_error_m,
@@ -104,7 +105,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
             s = vec.tracking_state
             cols["frame"].append(frame)
             cols["mpjpe"].append(1000.0 * float(mpjpe_root_relative(s)[0]))
-            cols["lag"].append(100.0 * float(torch.linalg.norm(s.ref_anchor_pos_w[0, :2] - s.anchor_pos_w[0, :2])))
+            cols["lag"].append(100.0 * float(anchor_horizontal_error_m(s)[0]))
             if has_objects:
                 o = s.objects
                 cols["pos"].append(100.0 * float(object_position_error_m(s)[0].mean()))

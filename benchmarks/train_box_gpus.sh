@@ -71,7 +71,7 @@ job_sets() {  # the job's --set overrides, after the caller's SETS
 env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0" ;; esac
   [ "$1" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
 env.terminations.object_ori.params.threshold_rad=1.0"
-  case $1 in *_q0|*_q0_xy) echo "env.objects.grasp_fit_quantile=0" ;; esac
+  case $1 in *_q0*) echo "env.objects.grasp_fit_quantile=0" ;; esac
   case $1 in *_xy) echo "env.terminations.anchor_xy.fn=anchor_horizontal_error \
 env.terminations.anchor_xy.params.threshold_m=0.5" ;; esac
   [ "$1" = ours_wrist ] && echo "env.objects.hand_contact_roots=[left_wrist_pitch_link,right_wrist_pitch_link] \

@@ -55,13 +55,12 @@ from otr_gym.rotations import quat_apply, quat_mul
 _PER_WORLD_FIELDS = ("geom_friction", "body_ipos", "body_mass", "body_inertia")  # §6, robot and objects
 
 
-def contact_pairs(objects: SceneObjects, hands, support_ground: bool,
-                  hand_roots=None) -> tuple[list[ContactPair], list[ContactPair]]:
+def contact_pairs(objects: SceneObjects, hands, hand_roots,
+                  support_ground: bool) -> tuple[list[ContactPair], list[ContactPair]]:
     """(hand–object pairs, H-major then M; object–support pairs, M-major then S). A hand's pair
-    takes every geom of the subtree of its root in ``hand_roots`` (default: the hand body)."""
-    roots = hands if hand_roots is None else hand_roots
+    takes every geom of the subtree of its root in ``hand_roots``."""
     hand_pairs = [ContactPair(f"{h}|{o.body}", ("subtree", r), ("body", o.body))
-                  for h, r in zip(hands, roots, strict=True) for o in objects.moving]
+                  for h, r in zip(hands, hand_roots, strict=True) for o in objects.moving]
     supports = ([("ground", ("geom", GROUND_GEOM))] if support_ground else []) + \
         [(s.name, ("body", s.body)) for s in objects.static]
     support_pairs = [ContactPair(f"{o.body}|{name}", ("body", o.body), ref)
@@ -198,8 +197,8 @@ def make_box_task(reference: ReferenceSource, num_envs: int, backend: str, devic
                 f"(x = {', '.join(f'{x:g}' for x in np.unique(terrain.clip_origin_w[:, 0]))} m): a fixed body has one "
                 "pose, so train the terrain clips and the clips with static objects separately")
     scene = scene_objects(refs, cfg.objects)
-    hand_pairs, support_pairs = contact_pairs(scene, cfg.objects.hand_bodies, cfg.objects.support_ground,
-                                              cfg.objects.hand_roots)
+    hand_pairs, support_pairs = contact_pairs(scene, cfg.objects.hand_bodies, cfg.objects.hand_roots,
+                                              cfg.objects.support_ground)
     pairs = hand_pairs + support_pairs
     model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim, terrain=terrain)
     if cfg.objects.grasp_fit:

@@ -62,7 +62,11 @@ def build_sim_model(contact_bodies: Sequence[str], objects=None, contact_pairs: 
     for body in contact_bodies:
         spec.add_sensor(name=_CONTACT_SENSOR_PREFIX + body, type=mujoco.mjtSensor.mjSENS_CONTACT,
                         objtype=mujoco.mjtObj.mjOBJ_BODY, objname=body, intprm=[_DATA_FORCE, _REDUCE_NETFORCE, 1])
+    geom_names = {g.name for g in spec.geoms}
     for pair in contact_pairs:
+        for kind, name in (pair.first, pair.second):
+            if name not in (geom_names if kind == "geom" else body_names):
+                raise KeyError(f"contact pair '{pair.key}': {kind} '{name}' is not in the simulation model")
         spec.add_sensor(name=_CONTACT_SENSOR_PREFIX + pair.key, type=mujoco.mjtSensor.mjSENS_CONTACT,
                         objtype=_OBJ_TYPES[pair.first[0]], objname=pair.first[1],
                         reftype=_OBJ_TYPES[pair.second[0]], refname=pair.second[1],

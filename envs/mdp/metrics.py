@@ -27,6 +27,11 @@ def mpjpe_root_relative_heading_aligned(s: TrackingState, root: str = "pelvis") 
     return torch.linalg.norm(robot_rel - ref_rel, dim=-1).mean(-1)
 
 
+def anchor_horizontal_error_m(s: TrackingState) -> torch.Tensor:
+    """(N,) horizontal distance (m, world x–y) of the robot's anchor from the reference's."""
+    return torch.linalg.norm(s.ref_anchor_pos_w[:, :2] - s.anchor_pos_w[:, :2], dim=-1)
+
+
 def object_position_error_m(s: TrackingState) -> torch.Tensor:
     """(N, M) distance (m, world) of each moving object from its reference position."""
     return torch.linalg.norm(s.objects.ref_pos_w - s.objects.pos_w, dim=-1)

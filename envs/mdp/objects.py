@@ -219,10 +219,9 @@ class _Geometry:
                     if model.geom_bodyid[g] in bodies and model.geom_contype[g] | model.geom_conaffinity[g]]
 
         self.hand_geoms = []
-        for hand, root in zip(cfg.hand_bodies, cfg.hand_roots):
-            for key, name in (("hand_bodies", hand), ("hand_contact_roots", root)):
-                if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name) < 0:
-                    raise KeyError(f"objects.{key}: '{name}' is not a body of the simulation model")
+        for hand, root in zip(cfg.hand_bodies, cfg.hand_roots):  # roots: checked by the model's contact pairs
+            if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, hand) < 0:
+                raise KeyError(f"objects.hand_bodies: '{hand}' is not a body of the simulation model")
             if not _descends(model, model.body(hand).id, model.body(root).id):
                 raise KeyError(f"objects.hand_contact_roots: '{root}' is not '{hand}' or a body above it")
             self.hand_geoms.append(geoms_of(root, subtree=True))

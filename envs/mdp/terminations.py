@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from envs.mdp.metrics import object_orientation_error_rad
+from envs.mdp.metrics import anchor_horizontal_error_m, object_orientation_error_rad
 from envs.mdp.state import TrackingState
 from otr_gym.rotations import projected_gravity
 
@@ -19,7 +19,7 @@ def anchor_horizontal_error(s: TrackingState, threshold_m: float) -> torch.Tenso
     """‖xy_refAnchor − xy_robotAnchor‖ > threshold (m, world): a robot trailing its reference
     (the demo box carry's walk to the box lags 70 cm without ending an episode under §5's
     height and tilt tests). Not in the default set."""
-    return torch.linalg.norm(s.ref_anchor_pos_w[:, :2] - s.anchor_pos_w[:, :2], dim=-1) > threshold_m
+    return anchor_horizontal_error_m(s) > threshold_m
 
 
 def anchor_gravity_error(s: TrackingState, threshold: float) -> torch.Tensor:
