@@ -16,10 +16,10 @@
 #   ours           our OMOMO sub3_largebox_003 reference, $IN/sub3_largebox_003.npz (`otr retarget`)
 #   ours_ori       ours with a coarse object orientation term (σ 1 rad): a variant, for direction
 #   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
-#   ours_q0 demo_q0 holo_q0  ours / the demo / Holosoma's with the grasp fit's narrowing off
-#                  (objects.grasp_fit_quantile=0): the demo is learned that way (README), not with the fit
-#   ours_xy demo_q0_xy  ours / demo_q0 plus a termination when the torso is > 0.5 m from its reference
-#                  horizontally (anchor_horizontal_error; the demo's walk-in trails by up to 70 cm)
+#   JOB_q0         any job with the grasp fit's narrowing off (objects.grasp_fit_quantile=0): the demo
+#                  is learned that way (README), not with the fit. E.g. ours_q0, holo_q0, no_contact_q0
+#   JOB_xy         any job plus a termination when the torso is > XY_M (0.5) m from its reference horizontally
+#                  (anchor_horizontal_error; the demo's walk-in trails by up to 70 cm). E.g. ours_q0_xy
 #   ours_wrist     ours with each hand's wrist box counted as the hand (objects.hand_contact_roots: the
 #                  wrist_pitch links; their contacts no longer undesired): force pairs, grasp fit, windows
 #   holo           Holosoma's reference of the clip, $IN/sub3_largebox_003_mj_w_obj.npz + $IN/largebox.obj
@@ -35,7 +35,7 @@
 #   otr demo --out out/demo_box; cp out/demo_box/box_carry.npz out/gin/demo_box_carry.npz
 #   cp ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz ../shared/data/objects/largebox.obj out/gin/
 # Knobs: SETS (--set overrides for every job, space-separated), NUM_ENVS (8192), EVAL_ENVS (1024),
-# SEED (42), REPORT_S (240), DEVICE (cuda), IN (out/gin), OMP_NUM_THREADS (4).
+# SEED (42), REPORT_S (240), DEVICE (cuda), IN (out/gin), OMP_NUM_THREADS (4), XY_M (0.5, the _xy jobs').
 # README's four-GPU table: SETS="$(cat benchmarks/box_anchor_fine.sets)" benchmarks/train_box_gpus.sh start 25 \
 #   0:ours 1:holo@10,demo@10 2:no_contact@10,ours_ori 3:no_object_vel@10,throughput
 set -uo pipefail
@@ -48,33 +48,43 @@ export EVAL_ENVS=${EVAL_ENVS:-1024} VIDEO=0 DEVICE=${DEVICE:-cuda}
 report_s=${REPORT_S:-240}
 ours=$IN/sub3_largebox_003.npz
 
+base_job() {  # a job without its _q0 / _xy suffixes (they compose with every base job)
+  local job=${1%_xy}
+  echo "${job%_q0}"
+}
+
 reference() {
-  case $1 in
-    holo|holo_q0) echo "$IN/sub3_largebox_003_mj_w_obj.npz" ;;
-    demo|demo_q0|demo_q0_xy) echo "$IN/demo_box_carry.npz" ;;
+  case $(base_job "$1") in
+    holo) echo "$IN/sub3_largebox_003_mj_w_obj.npz" ;;
+    demo) echo "$IN/demo_box_carry.npz" ;;
     *) echo "$ours" ;;
   esac
 }
 
 job_env() {  # the train_box.sh knobs of a job (no spaces in a value)
-  case $1 in
-    ours|ours_ori|ours_tip|ours_q0|ours_wrist|ours_xy|demo|demo_q0|demo_q0_xy|throughput) ;;
-    holo|holo_q0) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
-    no_contact|no_object_vel) echo "ABLATION=$1" ;;
+  local base
+  base=$(base_job "$1")
+  case $base in
+    ours|ours_ori|ours_tip|ours_wrist|demo) ;;
+    throughput) [ "$1" = throughput ] || { echo "job '$1': throughput takes no suffix" >&2; return 1; } ;;
+    holo) echo "OBJECT_MESH=largebox=$IN/largebox.obj" ;;
+    no_contact|no_object_vel) echo "ABLATION=$base" ;;
     *) echo "unknown job '$1'" >&2; return 1 ;;
   esac
 }
 
 job_sets() {  # the job's --set overrides, after the caller's SETS
+  local base
+  base=$(base_job "$1")
   echo "${SETS:-}"
-  case $1 in ours_ori|ours_tip) echo "env.rewards.object_ori_coarse.fn=object_orientation_error_exp \
+  case $base in ours_ori|ours_tip) echo "env.rewards.object_ori_coarse.fn=object_orientation_error_exp \
 env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0" ;; esac
-  [ "$1" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
+  [ "$base" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
 env.terminations.object_ori.params.threshold_rad=1.0"
-  case $1 in *_q0*) echo "env.objects.grasp_fit_quantile=0" ;; esac
+  case $1 in *_q0|*_q0_xy) echo "env.objects.grasp_fit_quantile=0" ;; esac
   case $1 in *_xy) echo "env.terminations.anchor_xy.fn=anchor_horizontal_error \
-env.terminations.anchor_xy.params.threshold_m=0.5" ;; esac
-  [ "$1" = ours_wrist ] && echo "env.objects.hand_contact_roots=[left_wrist_pitch_link,right_wrist_pitch_link] \
+env.terminations.anchor_xy.params.threshold_m=${XY_M:-0.5}" ;; esac
+  [ "$base" = ours_wrist ] && echo "env.objects.hand_contact_roots=[left_wrist_pitch_link,right_wrist_pitch_link] \
 env.rewards.undesired_contacts.params.exclude=[ankle_roll,wrist_yaw,wrist_pitch]"
   return 0
 }
