@@ -8,6 +8,7 @@
 #   benchmarks/train_box_gpus.sh wait  SECONDS     # until every queue is done, at most SECONDS; progress
 #   benchmarks/train_box_gpus.sh pack  TGZ         # summaries, evaluations, curves, logs, event files;
 #                                                  # TGZ's _checkpoints.tar: the deadline runs' latest checkpoints
+#   benchmarks/train_box_gpus.sh show  JOB...      # a job's reference, train_box.sh knobs and --set overrides
 #
 # A job learns MIN minutes (rsl-rl's learning time; without @MIN: until the deadline). Every trainer
 # still running REPORT_S (240) before the deadline, DEADLINE_MIN after `start`, gets SIGINT (its
@@ -39,7 +40,7 @@
 # README's four-GPU table: SETS="$(cat benchmarks/box_anchor_fine.sets)" benchmarks/train_box_gpus.sh start 25 \
 #   0:ours 1:holo@10,demo@10 2:no_contact@10,ours_ori 3:no_object_vel@10,throughput
 set -uo pipefail
-usage="usage: benchmarks/train_box_gpus.sh start DEADLINE_MIN QUEUE... | wait SECONDS | pack TGZ"
+usage="usage: benchmarks/train_box_gpus.sh start DEADLINE_MIN QUEUE... | wait SECONDS | pack TGZ | show JOB..."
 IN=${IN:-out/gin}
 state=runs/gpus
 mkdir -p "$state" out/gpus
@@ -202,6 +203,17 @@ case ${1:-} in
     [ ${#last[@]} -gt 0 ] && tar cf "${tgz%.tgz}_checkpoints.tar" "${last[@]}"
     ls -la "$tgz" "${tgz%.tgz}_checkpoints.tar" 2>/dev/null
     for d in out/gpus/*/; do echo "### $d"; cat "$d/summary.md" 2>/dev/null; done
+    ;;
+  show)  # what a job would train on, without training: reference, train_box.sh knobs, --set overrides
+    shift
+    [ $# -ge 1 ] || { echo "$usage" >&2; exit 2; }
+    for job in "$@"; do
+      knobs=$(job_env "$job") || exit 2
+      echo "$job"
+      echo "  reference: $(reference "$job")"
+      echo "  knobs: ${knobs:--}"
+      echo "  sets: $(job_sets "$job" | tr '\n' ' ' | tr -s ' ' | sed 's/^ //; s/ $//')"
+    done
     ;;
   *) echo "$usage" >&2; exit 2 ;;
 esac

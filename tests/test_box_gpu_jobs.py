@@ -1,0 +1,65 @@
+"""benchmarks/train_box_gpus.sh's job names: the _q0 / _xy suffixes compose with every base job,
+and every job's --set overrides load into the box config (a typo would only surface on the GPU)."""
+import os
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from agents.config import load_train_config
+from agents.train import parse_sets
+from envs.config import load_box_config
+from otr_gym.config import merge
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "train_box_gpus.sh"
+
+
+def show(tmp_path: Path, *jobs: str, **env: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["bash", str(SCRIPT), "show", *jobs], cwd=tmp_path, capture_output=True, text=True,
+                          env={**os.environ, **env}, timeout=60)
+
+
+def parse_show(stdout: str) -> dict[str, dict[str, str]]:
+    jobs: dict[str, dict[str, str]] = {}
+    for line in stdout.splitlines():
+        if not line.startswith("  "):
+            job = jobs.setdefault(line, {})
+        else:
+            key, _, value = line.strip().partition(": ")
+            job[key.rstrip(":")] = value
+    return jobs
+
+
+def box_env(sets: str):
+    train = load_train_config(None, merge(parse_sets(sets.split()), {"task": "OTR-G1-BoxTrack-v0"}))
+    return load_box_config(None, train.env)
+
+
+def test_suffixes_compose_and_load_into_the_box_config(tmp_path):
+    result = show(tmp_path, "ours", "ours_q0", "ours_q0_xy", "holo_q0", "no_contact_q0", "demo_q0_xy", XY_M="0.3")
+    assert result.returncode == 0, result.stderr
+    jobs = parse_show(result.stdout)
+    assert list(jobs) == ["ours", "ours_q0", "ours_q0_xy", "holo_q0", "no_contact_q0", "demo_q0_xy"]
+
+    assert jobs["ours"]["reference"] == "out/gin/sub3_largebox_003.npz"
+    assert jobs["holo_q0"]["reference"] == "out/gin/sub3_largebox_003_mj_w_obj.npz"
+    assert jobs["holo_q0"]["knobs"] == "OBJECT_MESH=largebox=out/gin/largebox.obj"
+    assert jobs["no_contact_q0"]["knobs"] == "ABLATION=no_contact"
+    assert jobs["demo_q0_xy"]["reference"] == "out/gin/demo_box_carry.npz"
+
+    default = box_env(jobs["ours"]["sets"])
+    assert default.objects.grasp_fit_quantile == pytest.approx(0.75)
+    assert "anchor_xy" not in default.terminations
+    for job in ("ours_q0", "ours_q0_xy", "holo_q0", "no_contact_q0", "demo_q0_xy"):
+        assert box_env(jobs[job]["sets"]).objects.grasp_fit_quantile == 0.0, job
+    for job in ("ours_q0_xy", "demo_q0_xy"):
+        term = box_env(jobs[job]["sets"]).terminations["anchor_xy"]
+        assert term.fn == "anchor_horizontal_error" and term.params == {"threshold_m": 0.3}, job
+    assert "anchor_xy" not in box_env(jobs["ours_q0"]["sets"]).terminations
+
+
+def test_unknown_jobs_are_refused_by_name(tmp_path):
+    for job in ("bogus", "bogus_q0", "throughput_q0"):
+        result = show(tmp_path, job)
+        assert result.returncode == 2
+        assert f"'{job}'" in result.stderr
