@@ -7,7 +7,7 @@
 #   benchmarks/train_box_gpus.sh start DEADLINE_MIN GPU:JOB[@MIN][,JOB[@MIN]...] ...
 #   benchmarks/train_box_gpus.sh wait  SECONDS     # until every queue is done, at most SECONDS; progress
 #   benchmarks/train_box_gpus.sh pack  TGZ         # summaries, evaluations, curves, logs, event files;
-#                                                  # TGZ's _checkpoints.tar: the deadline runs' latest checkpoints
+#                                                  # TGZ_checkpoint_JOB.tar: a deadline run's latest checkpoint
 #   benchmarks/train_box_gpus.sh show  JOB...      # a job's reference, train_box.sh knobs and --set overrides
 #
 # A job learns MIN minutes (rsl-rl's learning time; without @MIN: until the deadline). Every trainer
@@ -190,18 +190,19 @@ case ${1:-} in
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used --format=csv,noheader 2>/dev/null || true
     ;;
   pack)
-    # results without checkpoints and ONNX files (a device command returns files of limited size),
-    # plus the latest checkpoint of each run that learned until the deadline, to resume it elsewhere
+    # results without checkpoints and ONNX files, plus one tar per run that learned until the
+    # deadline holding its latest checkpoint, to resume it elsewhere: a device command returns files
+    # of at most 16 MiB each, and one tar of four checkpoints (21 MB) did not come back
     tgz=${2:?$usage}
-    tar czf "$tgz" --exclude='*.stdout' --exclude='*.pt' --exclude='*.onnx' out/gpus runs/gpus 2>/dev/null
-    last=()
+    mkdir -p "$(dirname "$tgz")"
+    tar czf "$tgz" --exclude='*.stdout' --exclude='*.pt' --exclude='*.onnx' out/gpus runs/gpus || exit 1
     for d in runs/gpus/*/; do
       [ -f "$d/RESUMABLE" ] && [ -f "$d/LATEST_RUN" ] || continue
       run=$(cat "$d/LATEST_RUN")
-      last+=("$run/model_$(ls "$run"/model_*.pt | sed 's/.*model_\([0-9]*\)\.pt/\1/' | sort -n | tail -1).pt")
+      last="$run/model_$(ls "$run"/model_*.pt | sed 's/.*model_\([0-9]*\)\.pt/\1/' | sort -n | tail -1).pt"
+      tar cf "${tgz%.tgz}_checkpoint_$(basename "$d").tar" "$last" || exit 1
     done
-    [ ${#last[@]} -gt 0 ] && tar cf "${tgz%.tgz}_checkpoints.tar" "${last[@]}"
-    ls -la "$tgz" "${tgz%.tgz}_checkpoints.tar" 2>/dev/null
+    ls -la "$tgz" "${tgz%.tgz}"_checkpoint_*.tar 2>/dev/null
     for d in out/gpus/*/; do echo "### $d"; cat "$d/summary.md" 2>/dev/null; done
     ;;
   show)  # what a job would train on, without training: reference, train_box.sh knobs, --set overrides

@@ -2,6 +2,7 @@
 and every job's --set overrides load into the box config (a typo would only surface on the GPU)."""
 import os
 import subprocess
+import tarfile
 from pathlib import Path
 
 import pytest
@@ -63,3 +64,32 @@ def test_unknown_jobs_are_refused_by_name(tmp_path):
         result = show(tmp_path, job)
         assert result.returncode == 2
         assert f"'{job}'" in result.stderr
+
+
+def test_pack_writes_one_checkpoint_tar_per_resumable_run(tmp_path):
+    """Each run that learned to the deadline gets its own tar with only its latest checkpoint (a
+    device command returns files of at most 16 MiB: one tar of four checkpoints did not come back)."""
+    for job, resumable, iterations in (("ours_q0", True, (25, 100, 75)), ("holo_q0", False, (250,)),
+                                       ("ours_q0_xy", True, (50,))):
+        run = tmp_path / "runs" / "gpus" / job / "RUN"
+        run.mkdir(parents=True)
+        for it in iterations:
+            (run / f"model_{it}.pt").write_bytes(b"x" * it)
+        (run.parent / "LATEST_RUN").write_text(f"runs/gpus/{job}/RUN\n")
+        if resumable:
+            (run.parent / "RESUMABLE").touch()
+        (tmp_path / "out" / "gpus" / job).mkdir(parents=True)
+        (tmp_path / "out" / "gpus" / job / "summary.md").write_text(f"# {job}\n")
+    result = subprocess.run(["bash", str(SCRIPT), "pack", "packed/results.tgz"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "# ours_q0_xy" in result.stdout
+
+    packed = sorted(p.name for p in (tmp_path / "packed").iterdir())
+    assert packed == ["results.tgz", "results_checkpoint_ours_q0.tar", "results_checkpoint_ours_q0_xy.tar"]
+    with tarfile.open(tmp_path / "packed" / "results_checkpoint_ours_q0.tar") as tar:
+        assert tar.getnames() == ["runs/gpus/ours_q0/RUN/model_100.pt"]
+    with tarfile.open(tmp_path / "packed" / "results.tgz") as tar:
+        names = tar.getnames()
+    assert "out/gpus/holo_q0/summary.md" in names and "runs/gpus/ours_q0/LATEST_RUN" in names
+    assert not [n for n in names if n.endswith(".pt")]
