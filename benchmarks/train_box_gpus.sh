@@ -199,7 +199,9 @@ case ${1:-} in
     for d in runs/gpus/*/; do
       [ -f "$d/RESUMABLE" ] && [ -f "$d/LATEST_RUN" ] || continue
       run=$(cat "$d/LATEST_RUN")
-      last="$run/model_$(ls "$run"/model_*.pt | sed 's/.*model_\([0-9]*\)\.pt/\1/' | sort -n | tail -1).pt"
+      it=$(ls "$run"/model_*.pt 2>/dev/null | sed 's/.*model_\([0-9]*\)\.pt/\1/' | sort -n | tail -1)
+      [ -n "$it" ] || { echo "pack: no checkpoint in $run" >&2; continue; }
+      last="$run/model_$it.pt"
       tar cf "${tgz%.tgz}_checkpoint_$(basename "$d").tar" "$last" || exit 1
     done
     ls -la "$tgz" "${tgz%.tgz}"_checkpoint_*.tar 2>/dev/null

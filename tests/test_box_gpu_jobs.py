@@ -1,5 +1,6 @@
-"""benchmarks/train_box_gpus.sh's job names: the _q0 / _xy suffixes compose with every base job,
-and every job's --set overrides load into the box config (a typo would only surface on the GPU)."""
+"""benchmarks/train_box_gpus.sh: the _q0 / _xy suffixes compose with every base job, every job's
+--set overrides load into the box config (a typo would only surface on the GPU), and `pack` returns
+each resumable run's checkpoint in a file of its own."""
 import os
 import subprocess
 import tarfile
@@ -15,9 +16,11 @@ from otr_gym.config import merge
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "train_box_gpus.sh"
 
 
-def show(tmp_path: Path, *jobs: str, **env: str) -> subprocess.CompletedProcess:
-    return subprocess.run(["bash", str(SCRIPT), "show", *jobs], cwd=tmp_path, capture_output=True, text=True,
-                          env={**os.environ, **env}, timeout=60)
+def script(tmp_path: Path, *args: str, **env: str) -> subprocess.CompletedProcess:
+    """The script in ``tmp_path`` (its working folder), the caller's knobs dropped, ``env`` added."""
+    base = {k: v for k, v in os.environ.items() if k not in ("SETS", "XY_M", "IN")}
+    return subprocess.run(["bash", str(SCRIPT), *args], cwd=tmp_path, capture_output=True, text=True,
+                          env={**base, **env}, timeout=60)
 
 
 def parse_show(stdout: str) -> dict[str, dict[str, str]]:
@@ -37,10 +40,11 @@ def box_env(sets: str):
 
 
 def test_suffixes_compose_and_load_into_the_box_config(tmp_path):
-    result = show(tmp_path, "ours", "ours_q0", "ours_q0_xy", "holo_q0", "no_contact_q0", "demo_q0_xy", XY_M="0.3")
+    names = ["ours", "ours_q0", "ours_q0_xy", "holo_q0", "no_contact_q0", "demo_q0_xy"]
+    result = script(tmp_path, "show", *names, XY_M="0.3")
     assert result.returncode == 0, result.stderr
     jobs = parse_show(result.stdout)
-    assert list(jobs) == ["ours", "ours_q0", "ours_q0_xy", "holo_q0", "no_contact_q0", "demo_q0_xy"]
+    assert list(jobs) == names
 
     assert jobs["ours"]["reference"] == "out/gin/sub3_largebox_003.npz"
     assert jobs["holo_q0"]["reference"] == "out/gin/sub3_largebox_003_mj_w_obj.npz"
@@ -61,7 +65,7 @@ def test_suffixes_compose_and_load_into_the_box_config(tmp_path):
 
 def test_unknown_jobs_are_refused_by_name(tmp_path):
     for job in ("bogus", "bogus_q0", "throughput_q0"):
-        result = show(tmp_path, job)
+        result = script(tmp_path, "show", job)
         assert result.returncode == 2
         assert f"'{job}'" in result.stderr
 
@@ -70,7 +74,7 @@ def test_pack_writes_one_checkpoint_tar_per_resumable_run(tmp_path):
     """Each run that learned to the deadline gets its own tar with only its latest checkpoint (a
     device command returns files of at most 16 MiB: one tar of four checkpoints did not come back)."""
     for job, resumable, iterations in (("ours_q0", True, (25, 100, 75)), ("holo_q0", False, (250,)),
-                                       ("ours_q0_xy", True, (50,))):
+                                       ("ours_q0_xy", True, (50,)), ("ours", True, ())):
         run = tmp_path / "runs" / "gpus" / job / "RUN"
         run.mkdir(parents=True)
         for it in iterations:
@@ -80,10 +84,10 @@ def test_pack_writes_one_checkpoint_tar_per_resumable_run(tmp_path):
             (run.parent / "RESUMABLE").touch()
         (tmp_path / "out" / "gpus" / job).mkdir(parents=True)
         (tmp_path / "out" / "gpus" / job / "summary.md").write_text(f"# {job}\n")
-    result = subprocess.run(["bash", str(SCRIPT), "pack", "packed/results.tgz"], cwd=tmp_path,
-                            capture_output=True, text=True, timeout=60)
+    result = script(tmp_path, "pack", "packed/results.tgz")
     assert result.returncode == 0, result.stderr
     assert "# ours_q0_xy" in result.stdout
+    assert "pack: no checkpoint in runs/gpus/ours/RUN" in result.stderr  # reported, the others still packed
 
     packed = sorted(p.name for p in (tmp_path / "packed").iterdir())
     assert packed == ["results.tgz", "results_checkpoint_ours_q0.tar", "results_checkpoint_ours_q0_xy.tar"]
