@@ -82,7 +82,7 @@ job_sets() {  # the job's --set overrides, after the caller's SETS
 env.rewards.object_ori_coarse.weight=1.0 env.rewards.object_ori_coarse.params.sigma=1.0" ;; esac
   [ "$base" = ours_tip ] && echo "env.terminations.object_ori.fn=object_orientation_error \
 env.terminations.object_ori.params.threshold_rad=1.0"
-  case $1 in *_q0|*_q0_xy) echo "env.objects.grasp_fit_quantile=0" ;; esac
+  case ${1%_xy} in *_q0) echo "env.objects.grasp_fit_quantile=0" ;; esac  # as base_job reads it
   case $1 in *_xy) echo "env.terminations.anchor_xy.fn=anchor_horizontal_error \
 env.terminations.anchor_xy.params.threshold_m=${XY_M:-0.5}" ;; esac
   [ "$base" = ours_wrist ] && echo "env.objects.hand_contact_roots=[left_wrist_pitch_link,right_wrist_pitch_link] \
@@ -100,6 +100,17 @@ its, minutes = learning_minutes(read_scalars(run))
 within = [it for it, m in zip(its, minutes) if m <= budget]
 saved = [int(re.sub(r"\D", "", p.stem)) for p in run.glob("model_*.pt")]
 print(max((it for it in saved if within and it <= within[-1]), default=""))
+EOF
+}
+
+latest_checkpoint() {  # RUN: its highest-numbered checkpoint (agents.runs); nothing when it has none
+  python3 - "$1" <<'EOF'
+import sys
+from agents.runs import RunError, resolve_checkpoint
+try:
+    print(resolve_checkpoint(sys.argv[1]).path)
+except RunError:
+    pass
 EOF
 }
 
@@ -199,9 +210,8 @@ case ${1:-} in
     for d in runs/gpus/*/; do
       [ -f "$d/RESUMABLE" ] && [ -f "$d/LATEST_RUN" ] || continue
       run=$(cat "$d/LATEST_RUN")
-      it=$(ls "$run"/model_*.pt 2>/dev/null | sed 's/.*model_\([0-9]*\)\.pt/\1/' | sort -n | tail -1)
-      [ -n "$it" ] || { echo "pack: no checkpoint in $run" >&2; continue; }
-      last="$run/model_$it.pt"
+      last=$(latest_checkpoint "$run")
+      [ -n "$last" ] || { echo "pack: no checkpoint in $run" >&2; continue; }
       tar cf "${tgz%.tgz}_checkpoint_$(basename "$d").tar" "$last" || exit 1
     done
     ls -la "$tgz" "${tgz%.tgz}"_checkpoint_*.tar 2>/dev/null

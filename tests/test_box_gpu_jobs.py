@@ -10,7 +10,7 @@ import pytest
 
 from agents.config import load_train_config
 from agents.train import parse_sets
-from envs.config import load_box_config
+from envs.config import load_env_config
 from otr_gym.config import merge
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "train_box_gpus.sh"
@@ -35,8 +35,9 @@ def parse_show(stdout: str) -> dict[str, dict[str, str]]:
 
 
 def box_env(sets: str):
+    """The environment config `otr train --task OTR-G1-BoxTrack-v0 --set …` builds (as agents.vecenv)."""
     train = load_train_config(None, merge(parse_sets(sets.split()), {"task": "OTR-G1-BoxTrack-v0"}))
-    return load_box_config(None, train.env)
+    return load_env_config(train.task, overrides=train.env or None)
 
 
 def test_suffixes_compose_and_load_into_the_box_config(tmp_path):
