@@ -7,7 +7,10 @@ randomisation): what a policy that tracks perfectly, squeezing no harder than th
 hands, does to the box. A box that slips or tips here asks the policy for more than tracking
 (a firmer squeeze, another hold). Prints one row per reference (frames
 carried, box position error mean / p95 in cm, box orientation error mean / max in degrees, the
-frame where the box passed the task's 25 cm object termination), optionally a PNG of both errors per frame.
+frame where the box passed the task's 25 cm object termination, then the reference's hold while no
+support carries the box: frames held, the hands' height above the box centre in half-heights
+(-1 its bottom face, +1 its top; below 0 the box hangs over its hands and tips unless squeezed),
+the box centre's height and tilt), optionally a PNG of both errors per frame.
 
     python benchmarks/grasp_playback.py out/omomo/sub3_largebox_003.npz \\
         ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz \\
@@ -71,8 +74,9 @@ def main(argv: list[str] | None = None) -> int:
         # a reference with objects it cannot place (no mesh, no objects) is named by the loader
         results.append(play(ref, meshes, overrides))
         print(f"{ref}: {results[-1].frames} frames played", file=sys.stderr)
-    print("| reference | frames carried | box error cm mean / p95 | orientation error deg mean / max | box past 25 cm |")
-    print("|---|---|---|---|---|")
+    print("| reference | frames carried | box error cm mean / p95 | orientation error deg mean / max | box past 25 cm "
+          "| frames held | hands above the box centre (half-heights) | box centre height, tilt (held) |")
+    print("|---|---|---|---|---|---|---|---|")
     for r in results:
         print(r.row())
     if args.png:

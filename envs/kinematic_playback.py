@@ -2,7 +2,9 @@
 (qpos interpolated between frames, qvel from the reference), only the objects simulated (MuJoCo on
 the CPU, the OTR-G1-BoxTrack-v0 model: fitted hand boxes, grasp-fitted box, nominal mass and
 friction, no randomisation). What a policy that tracks perfectly, squeezing no harder than the
-reference's hands, does to the box. ``benchmarks/grasp_playback.py`` is its command line.
+reference's hands, does to the box, and where the reference holds it (``HeldGrasp``: a box held
+below its centre tips in the hands unless squeezed). ``benchmarks/grasp_playback.py`` is its
+command line.
 
 The robot must also be immovable *within* each step's contact solve: left as the unactuated G1,
 its links fall and swing under gravity during the step, and a hand accelerating away from the box
@@ -23,6 +25,7 @@ import torch
 
 from envs.box import make_box_task
 from envs.config import load_box_config
+from envs.mdp.objects import HeldGrasp, held_grasp
 from otr_gym.config import merge
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_apply_inverse, quat_error_angle
@@ -37,12 +40,16 @@ class Playback:
     termination_m: float  # the box task's object termination (terminations.object_pos), which ends the playback
     pos_error_cm: list[float]  # per frame played, moving object 0
     ori_error_deg: list[float]
+    grasp: HeldGrasp | None = None  # the reference's hold, None when it never holds a box
 
     def row(self) -> str:
         pos, ori = np.asarray(self.pos_error_cm), np.asarray(self.ori_error_deg)
         end = "–" if self.ended_at is None else f"frame {self.ended_at}"
+        g = self.grasp
+        hold = "– | – | –" if g is None else \
+            f"{g.frames} | {g.hand_height:+.2f} | {g.centre_height_m:.2f} m, {g.tilt_deg:.0f}°"
         return (f"| {Path(self.reference).name} | {self.frames} / {self.clip_frames - 1} | {pos.mean():.1f} / "
-                f"{np.percentile(pos, 95):.1f} | {ori.mean():.1f} / {ori.max():.1f} | {end} |")
+                f"{np.percentile(pos, 95):.1f} | {ori.mean():.1f} / {ori.max():.1f} | {end} | {hold} |")
 
 
 #: Armature (kg, kg·m²) added to every robot degree of freedom in the playback: 10⁶ × a G1 link's
@@ -82,6 +89,7 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
     motion, objects = task.motion, task.objects
     if motion.num_clips != 1:
         raise ValueError(f"{reference}: one clip at a time ({motion.num_clips} given)")
+    grasp = held_grasp(Reference.load(reference), task.scene, task.backend.model, cfg.objects)
     last = int(motion.clip_length[0]) - 1
     nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
     model = kinematic_robot(task.backend.model, nv)  # the task is ours alone: changed in place
@@ -106,4 +114,4 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
         if err > termination:
             ended = f
             break
-    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err)
+    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp)

@@ -539,3 +539,51 @@ def test_the_played_back_robot_is_immovable_within_a_physics_step(box_reference)
     mujoco.mj_forward(model, data)
     assert np.abs(data.qacc[:35]).max() < 1e-3  # what remains: 35 kg of G1 under gravity against 10⁶ kg
     np.testing.assert_allclose(data.qacc[37], -9.81, atol=1e-3)  # the falling box: gravity alone
+
+
+def test_held_grasp_tells_a_box_held_at_its_side_from_one_hung_over_the_hand(box_reference_geometry, tmp_path):
+    """The generated clip holds its box beside the left hand, centre at the hand point's height,
+    in the air (frames 60-99): the hand is at the box's side, about half-way up. Raised to rest on
+    top of the hand, the same box is held at its bottom face (-1 half-height), the inverted
+    pendulum that tips; turned 90° while held, it reads a 90° tilt."""
+    from envs.mdp.objects import held_grasp
+
+    def grasp(ref: Reference):
+        path = ref.save(tmp_path / f"{len(list(tmp_path.iterdir()))}.npz")
+        task = make_box_task(path, 1, "mujoco", "cpu", evaluation=True)
+        return held_grasp(ref, task.scene, task.backend.model, task.cfg.objects), task
+
+    ref = Reference.load(box_reference_geometry)
+    beside, task = grasp(ref)
+    assert 40 <= beside.frames <= 52  # frames 60-99 plus the approach within the 5 cm window
+    assert abs(beside.hand_height) < 0.5 and beside.tilt_deg == pytest.approx(0.0, abs=1e-3)
+    assert beside.centre_height_m == pytest.approx(ref.objects[0].pos_w[60:100, 2].mean(), abs=0.03)
+
+    # the box put on the hand from above (frames 45-104, the approach included): its bottom face
+    # 1 cm over the hand's highest point
+    model = task.backend.model
+    data = mujoco.MjData(model)
+    data.qpos[:36] = task.motion.qpos(torch.tensor([60]))[0].double().numpy()
+    mujoco.mj_kinematics(model, data)
+    left = model.body("left_wrist_yaw_link").id
+    tops = []
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] == left and model.geom_contype[g] | model.geom_conaffinity[g]:
+            rot_z = data.geom_xmat[g].reshape(3, 3)[2]  # world z of the geom's local axes
+            centre, half = model.geom_aabb[g, :3], model.geom_aabb[g, 3:]
+            tops.append(data.geom_xpos[g][2] + rot_z @ centre + np.abs(rot_z) @ half)
+    over = Reference.load(box_reference_geometry)
+    box = over.objects[0]
+    box.pos_w[45:105] = [*data.xpos[left][:2], max(tops) + 0.01 + BOX_HALF_M]
+    box.lin_vel_w = np.gradient(box.pos_w, 1.0 / over.fps, axis=0)
+    on_hand, _ = grasp(over)
+    assert on_hand.frames >= 55
+    assert on_hand.hand_height == pytest.approx(-1.0, abs=0.02)
+    assert on_hand.centre_height_m == pytest.approx(max(tops) + 0.01 + BOX_HALF_M, abs=0.01)
+
+    turned = Reference.load(box_reference_geometry)
+    turned.objects[0].quat_w[60:100] = [math.cos(math.pi / 4), math.sin(math.pi / 4), 0.0, 0.0]  # 90° about x
+    side, _ = grasp(turned)
+    # a cube turned about an axis is the same shape: the same frames are held, the 40 turned ones at 90°
+    assert side.frames == beside.frames
+    assert side.tilt_deg == pytest.approx(90.0 * 40 / side.frames, abs=0.5)

@@ -242,11 +242,7 @@ class _Geometry:
         qpos = ref.qpos()
         fromto = np.zeros(6)
         for t in range(T):
-            d.qpos[:self.robot_nq] = qpos[t]
-            for k, i in enumerate(moving):
-                d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t],
-                                                                                  ref.objects[i].quat_w[t]]
-            mujoco.mj_kinematics(m, d)
+            self._pose(ref, qpos, t, moving)
             for k, name in enumerate(names):
                 obj = self.object_geoms[name]
                 if hands:
@@ -257,6 +253,81 @@ class _Geometry:
                     support_d[t, k, s] = min(mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
                                              for a in obj for b in support)
         return hand_d, support_d
+
+    def _pose(self, ref: Reference, qpos: np.ndarray, t: int, moving: list[int]) -> None:
+        """Robot and moving objects at frame ``t`` of ``ref`` (kinematics only)."""
+        d = self.data
+        d.qpos[:self.robot_nq] = qpos[t]
+        for k, i in enumerate(moving):
+            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t], ref.objects[i].quat_w[t]]
+        mujoco.mj_kinematics(self.model, d)
+
+    def nearest_object_points(self, ref: Reference, moving: list[int], frames: np.ndarray) -> np.ndarray:
+        """(len(frames), H, M, 3) world point of each moving object nearest each hand's geoms at
+        those frames; NaN where the hand is farther than ``_FAR_M``."""
+        m, d = self.model, self.data
+        out = np.full((len(frames), len(self.hand_geoms), len(moving), 3), np.nan)
+        qpos = ref.qpos()
+        fromto = np.zeros(6)
+        for row, t in enumerate(frames):
+            self._pose(ref, qpos, int(t), moving)
+            for k, i in enumerate(moving):
+                for h, hand in enumerate(self.hand_geoms):
+                    best = _FAR_M
+                    for a in hand:
+                        for b in self.object_geoms[ref.objects[i].name]:
+                            dist = mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
+                            if dist < best:  # fromto: hand geom's point, then the object's
+                                best, out[row, h, k] = dist, fromto[3:]
+        return out
+
+
+@dataclass(frozen=True)
+class HeldGrasp:
+    """Where a reference holds its first moving object, a box, in the frames it is held: some
+    hand within ``proximity_threshold_m`` of it, the box farther than ``support_threshold_m`` from
+    every support (distances on the reference geometry, as the geometric windows)."""
+
+    frames: int
+    #: the box point nearest the hand (its collision geoms) above the box centre along the box's
+    #: up axis, in half-heights: -1 the bottom face, 0 the centre, +1 the top face; mean over the
+    #: held frames and the hands within reach
+    hand_height: float
+    centre_height_m: float  # box centre, world z, mean over the held frames
+    tilt_deg: float  # the box's up axis against the world vertical, mean over the held frames
+
+
+def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg: ObjectsCfg) -> HeldGrasp | None:
+    """How ``ref`` holds its first moving object (``objects`` as built for it, one box shape;
+    ``model`` the simulation model holding them). The box's up axis is the one nearest the
+    vertical while it rests on a support (its first frame if it never does). A box held below
+    its centre hangs over its hands, an inverted pendulum: it tips unless squeezed firmly. None
+    when the box is never held or is not one box."""
+    moving = [i for i, o in enumerate(objects.objects) if not o.static]
+    static = [i for i, o in enumerate(objects.objects) if o.static]
+    shapes = objects.objects[moving[0]].shapes if moving else ()
+    if len(shapes) != 1 or not isinstance(shapes[0], BoxShape):
+        return None
+    box = shapes[0]
+    geometry = _Geometry(model, objects, cfg)
+    hand_d, support_d = geometry.distances(ref, moving[:1], static, hands=True)
+    near = hand_d[:, :, 0] < cfg.proximity_threshold_m  # (T, H)
+    resting = (support_d[:, 0] < cfg.support_threshold_m).any(-1)  # (T,)
+    held = near.any(-1) & ~resting
+    if not held.any():
+        return None
+    obj = ref.objects[moving[0]]
+    box_quat_w = quat_mul(obj.quat_w, box.quat_wxyz)  # (T, 4)
+    vertical_b = quat_apply_inverse(box_quat_w, np.broadcast_to([0.0, 0.0, 1.0], (len(box_quat_w), 3)))
+    up = int(np.argmax(np.abs(vertical_b[resting if resting.any() else [0]]).sum(0)))
+    frames = np.flatnonzero(held)
+    centre_w = obj.pos_w[frames] + quat_apply(obj.quat_w[frames], box.pos)  # (N, 3)
+    points_w = geometry.nearest_object_points(ref, moving[:1], frames)[:, :, 0]  # (N, H, 3)
+    points_b = quat_apply_inverse(np.broadcast_to(box_quat_w[frames, None], points_w.shape[:-1] + (4,)),
+                                  points_w - centre_w[:, None])
+    height = (points_b[..., up] / box.half_extents[up])[near[frames]]
+    tilt = np.degrees(np.arccos(np.clip(np.abs(vertical_b[frames, up]), 0.0, 1.0)))
+    return HeldGrasp(len(frames), float(np.nanmean(height)), float(centre_w[:, 2].mean()), float(tilt.mean()))
 
 
 def _descends(model: mujoco.MjModel, body: int, root: int) -> bool:
