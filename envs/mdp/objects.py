@@ -232,7 +232,6 @@ class _Geometry:
     def distances(self, ref: Reference, moving: list[int], static: list[int],
                   hands: bool) -> tuple[np.ndarray | None, np.ndarray]:
         """((T, H, M) hand–object distances or None, (T, M, S) object–support distances), m."""
-        m, d = self.model, self.data
         names = [ref.objects[i].name for i in moving]
         supports = ([self.ground] if self.cfg.support_ground else []) + \
             [self.object_geoms[ref.objects[i].name] for i in static]
@@ -240,18 +239,15 @@ class _Geometry:
         hand_d = np.full((T, len(self.hand_geoms), len(moving)), _FAR_M) if hands else None
         support_d = np.full((T, len(moving), len(supports)), _FAR_M)
         qpos = ref.qpos()
-        fromto = np.zeros(6)
         for t in range(T):
             self._pose(ref, qpos, t, moving)
             for k, name in enumerate(names):
                 obj = self.object_geoms[name]
                 if hands:
                     for h, hand in enumerate(self.hand_geoms):
-                        hand_d[t, h, k] = min(mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
-                                              for a in hand for b in obj)
+                        hand_d[t, h, k] = self._closest(hand, obj)[0]
                 for s, support in enumerate(supports):
-                    support_d[t, k, s] = min(mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
-                                             for a in obj for b in support)
+                    support_d[t, k, s] = self._closest(obj, support)[0]
         return hand_d, support_d
 
     def _pose(self, ref: Reference, qpos: np.ndarray, t: int, moving: list[int]) -> None:
@@ -259,26 +255,31 @@ class _Geometry:
         d = self.data
         d.qpos[:self.robot_nq] = qpos[t]
         for k, i in enumerate(moving):
-            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t], ref.objects[i].quat_w[t]]
+            obj = ref.objects[i]
+            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[obj.pos_w[t], obj.quat_w[t]]
         mujoco.mj_kinematics(self.model, d)
+
+    def _closest(self, geoms_a: list[int], geoms_b: list[int]) -> tuple[float, np.ndarray]:
+        """Surface distance between two geom sets as posed (capped at ``_FAR_M``) and the point
+        of ``geoms_b`` nearest ``geoms_a`` (world; NaN when farther than the cap)."""
+        best, point, fromto = _FAR_M, np.full(3, np.nan), np.zeros(6)
+        for a in geoms_a:
+            for b in geoms_b:
+                dist = mujoco.mj_geomDistance(self.model, self.data, a, b, _FAR_M, fromto)
+                if dist < best:  # fromto: the point on a, then the point on b
+                    best, point = dist, fromto[3:].copy()
+        return best, point
 
     def nearest_object_points(self, ref: Reference, moving: list[int], frames: np.ndarray) -> np.ndarray:
         """(len(frames), H, M, 3) world point of each moving object nearest each hand's geoms at
         those frames; NaN where the hand is farther than ``_FAR_M``."""
-        m, d = self.model, self.data
         out = np.full((len(frames), len(self.hand_geoms), len(moving), 3), np.nan)
         qpos = ref.qpos()
-        fromto = np.zeros(6)
         for row, t in enumerate(frames):
             self._pose(ref, qpos, int(t), moving)
             for k, i in enumerate(moving):
                 for h, hand in enumerate(self.hand_geoms):
-                    best = _FAR_M
-                    for a in hand:
-                        for b in self.object_geoms[ref.objects[i].name]:
-                            dist = mujoco.mj_geomDistance(m, d, a, b, _FAR_M, fromto)
-                            if dist < best:  # fromto: hand geom's point, then the object's
-                                best, out[row, h, k] = dist, fromto[3:]
+                    out[row, h, k] = self._closest(hand, self.object_geoms[ref.objects[i].name])[1]
         return out
 
 
