@@ -10,12 +10,17 @@ A training run is one folder ``<log_dir>/<task>_<reference stem>_<YYYYmmdd-HHMMS
 
 Every file is written to a temporary name in the same folder and renamed, so an interrupted
 write never leaves a truncated file under the final name.
+
+``python -m agents.runs latest RUN`` prints a run's latest checkpoint, for the shell recipes that
+carry a run to another machine (``benchmarks/train_box.sh carry``, ``train_box_gpus.sh pack``).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -109,3 +114,21 @@ def resolve_checkpoint(run_or_checkpoint: str | Path) -> Checkpoint:
 def run_config(run_dir: str | Path) -> dict:
     """The ``config.yaml`` of a run: {"train": …, "reference": …, "device": …, …}."""
     return read_yaml(Path(run_dir) / CONFIG_FILE)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m agents.runs", description="Training run folders.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    latest = sub.add_parser("latest", help="print the latest checkpoint of a run folder")
+    latest.add_argument("run", help="run folder")
+    args = parser.parse_args(argv)
+    try:
+        print(resolve_checkpoint(args.run).path)
+    except RunError as exc:
+        print(exc, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -6,11 +6,14 @@
 #   benchmarks/train_box.sh report OUT_DIR REFERENCE   # curves, evaluation, ONNX, video of that run
 #   benchmarks/train_box.sh all    OUT_DIR REFERENCE   # train, then report
 #   benchmarks/train_box.sh prune  OUT_DIR REFERENCE   # keep the latest checkpoint and every 500th
+#   benchmarks/train_box.sh carry  OUT_DIR REFERENCE   # OUT_DIR/run.tar: the run to resume on another machine
 #
 # A 30-minute run under a 10-minute-per-command limit: `train` with MINUTES=7 (the first call also
 # builds the env and compiles MuJoCo-Warp's kernels, 2-3 min), then MINUTES=8 twice more, then
 # `report` (same OUT_DIR and RUNS_DIR each time: the run folder survives between commands while
-# the machine stays warm; `prune` first if it must be carried to another machine).
+# the machine stays warm). To go on on another machine: `carry` writes OUT_DIR/run.tar (RUNS_DIR's
+# LATEST_RUN and the run folder with only its latest checkpoint, ~10 MB); `tar xf run.tar` in the
+# repository root there, then `train` with the same RUNS_DIR resumes.
 #
 # Knobs (environment):
 #   NUM_ENVS (4096), MINUTES (8), DEVICE (cuda), SAVE_INTERVAL (250), SEED (42),
@@ -31,7 +34,7 @@
 # (EVAL_ENVS envs keeping the training randomisation: the success *rate*), summary.md (both
 # in one table), policy.onnx, play.mp4.
 set -euo pipefail
-usage="usage: benchmarks/train_box.sh all|train|report|prune OUT_DIR REFERENCE"
+usage="usage: benchmarks/train_box.sh all|train|report|prune|carry OUT_DIR REFERENCE"
 stage=${1:?$usage}
 out=${2:?$usage}
 ref=${3:?$usage}
@@ -109,12 +112,21 @@ prune() {
   [ -f "$latest" ] || { echo "$latest: no run" >&2; exit 1; }
   local run last
   run=$(cat "$latest")
-  last=$(ls "$run"/model_*.pt | sed 's/.*model_\([0-9]*\)\.pt/\1/' | sort -n | tail -1)
+  last=$("$py" -m agents.runs latest "$run") || exit 1
   for f in "$run"/model_*.pt; do
     it=$(basename "$f" .pt); it=${it#model_}
-    if [ "$it" != "$last" ] && [ $(( (it + 1) % 500 )) -ne 0 ]; then rm -f "$f"; fi
+    if [ "$(basename "$f")" != "$(basename "$last")" ] && [ $(( (it + 1) % 500 )) -ne 0 ]; then rm -f "$f"; fi
   done
   du -sh "$run"
+}
+
+carry() {  # a device command returns files of at most 16 MiB: the latest checkpoint only
+  [ -f "$latest" ] || { echo "$latest: no trained run (run the train stage first)" >&2; exit 1; }
+  local run last
+  run=$(cat "$latest")
+  last=$("$py" -m agents.runs latest "$run") || exit 1
+  tar cf "$out/run.tar" --exclude='*.pt' --exclude='*.onnx' "$latest" "$run" && tar rf "$out/run.tar" "$last" || exit 1
+  echo "$out/run.tar: $run, checkpoint $(basename "$last"), $(du -h "$out/run.tar" | cut -f1)"
 }
 
 case "$stage" in
@@ -122,5 +134,6 @@ case "$stage" in
   train) train ;;
   report) report ;;
   prune) prune ;;
-  *) echo "unknown stage '$stage' (all | train | report | prune)" >&2; exit 2 ;;
+  carry) carry ;;
+  *) echo "unknown stage '$stage' (all | train | report | prune | carry)" >&2; exit 2 ;;
 esac

@@ -104,14 +104,7 @@ EOF
 }
 
 latest_checkpoint() {  # RUN: its highest-numbered checkpoint (agents.runs); nothing when it has none
-  python3 - "$1" <<'EOF'
-import sys
-from agents.runs import RunError, resolve_checkpoint
-try:
-    print(resolve_checkpoint(sys.argv[1]).path)
-except RunError:
-    pass
-EOF
+  python3 -m agents.runs latest "$1" 2>/dev/null
 }
 
 run_job() {  # GPU JOB MINUTES(empty: until the deadline)

@@ -98,3 +98,40 @@ def test_pack_writes_one_checkpoint_tar_per_resumable_run(tmp_path):
         names = tar.getnames()
     assert "out/gpus/holo_q0/summary.md" in names and "runs/gpus/ours_q0/LATEST_RUN" in names
     assert not [n for n in names if n.endswith(".pt")]
+
+
+def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path):
+    """`train_box.sh carry` writes what resuming on another machine needs: RUNS_DIR's LATEST_RUN and
+    the run folder with its highest-numbered checkpoint (by number: 1250 after 975, which a sort of
+    the names would pick), its config and event files, no other checkpoint. `prune` keeps the same
+    latest checkpoint; a run without checkpoints is refused by name."""
+    carry = Path(__file__).resolve().parents[1] / "benchmarks" / "train_box.sh"
+    run = tmp_path / "runs" / "x" / "OTR-G1-BoxTrack-v0_sub3_largebox_003_20261127-022526"
+    run.mkdir(parents=True)
+    for it in (25, 975, 1250):
+        (run / f"model_{it}.pt").write_bytes(b"x" * it)
+    (run / "config.yaml").write_text("train: {}\n")
+    (run / "events.out.tfevents.1").write_bytes(b"e")
+    (run.parent / "LATEST_RUN").write_text(f"runs/x/{run.name}\n")
+
+    def stage(name: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(carry), name, "out", "ref.npz"], cwd=tmp_path, capture_output=True,
+                              text=True, env={**os.environ, "RUNS_DIR": "runs/x"}, timeout=60)
+
+    result = stage("carry")
+    assert result.returncode == 0, result.stderr
+    assert "checkpoint model_1250.pt" in result.stdout
+    with tarfile.open(tmp_path / "out" / "run.tar") as tar:
+        files = sorted(m.name for m in tar.getmembers() if m.isfile())
+    folder = f"runs/x/{run.name}"
+    assert files == ["runs/x/LATEST_RUN", f"{folder}/config.yaml", f"{folder}/events.out.tfevents.1",
+                     f"{folder}/model_1250.pt"]
+
+    (run / "model_499.pt").write_bytes(b"x")
+    assert stage("prune").returncode == 0  # keeps the latest checkpoint and every 500th
+    assert sorted(p.name for p in run.glob("model_*.pt")) == ["model_1250.pt", "model_499.pt"]
+
+    for it in (499, 1250):
+        (run / f"model_{it}.pt").unlink()
+    result = stage("carry")
+    assert result.returncode == 1 and "holds no checkpoint" in result.stderr and run.name in result.stderr
