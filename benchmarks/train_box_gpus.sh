@@ -103,10 +103,6 @@ print(max((it for it in saved if within and it <= within[-1]), default=""))
 EOF
 }
 
-latest_checkpoint() {  # RUN: its highest-numbered checkpoint (agents.runs); nothing when it has none
-  python3 -m agents.runs latest "$1" 2>/dev/null
-}
-
 run_job() {  # GPU JOB MINUTES(empty: until the deadline)
   local gpu=$1 job=$2 want=$3 deadline out ref left minutes run it
   deadline=$(cat "$state/DEADLINE")
@@ -203,7 +199,7 @@ case ${1:-} in
     for d in runs/gpus/*/; do
       [ -f "$d/RESUMABLE" ] && [ -f "$d/LATEST_RUN" ] || continue
       run=$(cat "$d/LATEST_RUN")
-      last=$(latest_checkpoint "$run")
+      last=$(python3 -m agents.runs latest "$run" 2>/dev/null)  # highest-numbered; nothing when none
       [ -n "$last" ] || { echo "pack: no checkpoint in $run" >&2; continue; }
       tar cf "${tgz%.tgz}_checkpoint_$(basename "$d").tar" "$last" || exit 1
     done

@@ -135,8 +135,7 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
             # the box axis that stands vertical in the frames the object rests on a support
             rests = (support_d[:, k] < cfg.support_threshold_m).any(-1)
             if rests.any():
-                box_quat_w = quat_mul(ref.objects[i].quat_w[rests], box.quat_wxyz)
-                up = np.abs(quat_apply_inverse(box_quat_w, np.broadcast_to([0.0, 0.0, 1.0], (len(box_quat_w), 3))))
+                up = np.abs(_vertical_in_box(ref.objects[i].quat_w[rests], box))
                 resting[k] += np.bincount(np.argmax(up, axis=-1), minlength=3)
             local = quat_apply_inverse(np.broadcast_to(box.quat_wxyz, target[:, :, k].shape[:-1] + (4,)),
                                        target[:, :, k] - box.pos)
@@ -228,10 +227,14 @@ class _Geometry:
         self.object_geoms = {o.name: geoms_of(o.body) for o in objects.objects}
         self.ground = [model.geom(GROUND_GEOM).id]
         self.robot_nq = model.nq - 7 * len(objects.moving)
+        self._fromto = np.zeros(6)  # mj_geomDistance's nearest points, reused by every query
 
-    def distances(self, ref: Reference, moving: list[int], static: list[int],
-                  hands: bool) -> tuple[np.ndarray | None, np.ndarray]:
-        """((T, H, M) hand–object distances or None, (T, M, S) object–support distances), m."""
+    def distances(self, ref: Reference, moving: list[int], static: list[int], hands: bool,
+                  hand_points: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
+        """((T, H, M) hand–object distances or None, (T, M, S) object–support distances), m.
+        With ``hands``, a (T, H, M, 3) ``hand_points`` is filled with the world point of each
+        object nearest each hand (NaN where farther than ``_FAR_M``) in the same pass."""
+        d = self.data
         names = [ref.objects[i].name for i in moving]
         supports = ([self.ground] if self.cfg.support_ground else []) + \
             [self.object_geoms[ref.objects[i].name] for i in static]
@@ -240,47 +243,32 @@ class _Geometry:
         support_d = np.full((T, len(moving), len(supports)), _FAR_M)
         qpos = ref.qpos()
         for t in range(T):
-            self._pose(ref, qpos, t, moving)
+            d.qpos[:self.robot_nq] = qpos[t]
+            for k, i in enumerate(moving):
+                d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t],
+                                                                                  ref.objects[i].quat_w[t]]
+            mujoco.mj_kinematics(self.model, d)
             for k, name in enumerate(names):
                 obj = self.object_geoms[name]
                 if hands:
                     for h, hand in enumerate(self.hand_geoms):
-                        hand_d[t, h, k] = self._closest(hand, obj)[0]
+                        hand_d[t, h, k], point = self._closest(hand, obj)
+                        if hand_points is not None:
+                            hand_points[t, h, k] = point
                 for s, support in enumerate(supports):
                     support_d[t, k, s] = self._closest(obj, support)[0]
         return hand_d, support_d
 
-    def _pose(self, ref: Reference, qpos: np.ndarray, t: int, moving: list[int]) -> None:
-        """Robot and moving objects at frame ``t`` of ``ref`` (kinematics only)."""
-        d = self.data
-        d.qpos[:self.robot_nq] = qpos[t]
-        for k, i in enumerate(moving):
-            obj = ref.objects[i]
-            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[obj.pos_w[t], obj.quat_w[t]]
-        mujoco.mj_kinematics(self.model, d)
-
     def _closest(self, geoms_a: list[int], geoms_b: list[int]) -> tuple[float, np.ndarray]:
         """Surface distance between two geom sets as posed (capped at ``_FAR_M``) and the point
         of ``geoms_b`` nearest ``geoms_a`` (world; NaN when farther than the cap)."""
-        best, point, fromto = _FAR_M, np.full(3, np.nan), np.zeros(6)
+        best, point, fromto = _FAR_M, None, self._fromto
         for a in geoms_a:
             for b in geoms_b:
                 dist = mujoco.mj_geomDistance(self.model, self.data, a, b, _FAR_M, fromto)
                 if dist < best:  # fromto: the point on a, then the point on b
                     best, point = dist, fromto[3:].copy()
-        return best, point
-
-    def nearest_object_points(self, ref: Reference, moving: list[int], frames: np.ndarray) -> np.ndarray:
-        """(len(frames), H, M, 3) world point of each moving object nearest each hand's geoms at
-        those frames; NaN where the hand is farther than ``_FAR_M``."""
-        out = np.full((len(frames), len(self.hand_geoms), len(moving), 3), np.nan)
-        qpos = ref.qpos()
-        for row, t in enumerate(frames):
-            self._pose(ref, qpos, int(t), moving)
-            for k, i in enumerate(moving):
-                for h, hand in enumerate(self.hand_geoms):
-                    out[row, h, k] = self._closest(hand, self.object_geoms[ref.objects[i].name])[1]
-        return out
+        return best, (np.full(3, np.nan) if point is None else point)
 
 
 @dataclass(frozen=True)
@@ -311,7 +299,8 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
         return None
     box = shapes[0]
     geometry = _Geometry(model, objects, cfg)
-    hand_d, support_d = geometry.distances(ref, moving[:1], static, hands=True)
+    points_w = np.full((ref.num_frames, len(geometry.hand_geoms), 1, 3), np.nan)
+    hand_d, support_d = geometry.distances(ref, moving[:1], static, hands=True, hand_points=points_w)
     near = hand_d[:, :, 0] < cfg.proximity_threshold_m  # (T, H)
     resting = (support_d[:, 0] < cfg.support_threshold_m).any(-1)  # (T,)
     held = near.any(-1) & ~resting
@@ -319,16 +308,22 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
         return None
     obj = ref.objects[moving[0]]
     box_quat_w = quat_mul(obj.quat_w, box.quat_wxyz)  # (T, 4)
-    vertical_b = quat_apply_inverse(box_quat_w, np.broadcast_to([0.0, 0.0, 1.0], (len(box_quat_w), 3)))
+    vertical_b = _vertical_in_box(obj.quat_w, box)  # (T, 3)
     up = int(np.argmax(np.abs(vertical_b[resting if resting.any() else [0]]).sum(0)))
     frames = np.flatnonzero(held)
     centre_w = obj.pos_w[frames] + quat_apply(obj.quat_w[frames], box.pos)  # (N, 3)
-    points_w = geometry.nearest_object_points(ref, moving[:1], frames)[:, :, 0]  # (N, H, 3)
-    points_b = quat_apply_inverse(np.broadcast_to(box_quat_w[frames, None], points_w.shape[:-1] + (4,)),
-                                  points_w - centre_w[:, None])
+    held_points = points_w[frames, :, 0]  # (N, H, 3)
+    points_b = quat_apply_inverse(np.broadcast_to(box_quat_w[frames, None], held_points.shape[:-1] + (4,)),
+                                  held_points - centre_w[:, None])
     height = (points_b[..., up] / box.half_extents[up])[near[frames]]
     tilt = np.degrees(np.arccos(np.clip(np.abs(vertical_b[frames, up]), 0.0, 1.0)))
     return HeldGrasp(len(frames), float(np.nanmean(height)), float(centre_w[:, 2].mean()), float(tilt.mean()))
+
+
+def _vertical_in_box(quat_w: np.ndarray, box: BoxShape) -> np.ndarray:
+    """(T, 3) the world vertical in the box's frame, for object orientations ``quat_w`` (T, 4) wxyz."""
+    box_quat_w = quat_mul(quat_w, box.quat_wxyz)
+    return quat_apply_inverse(box_quat_w, np.broadcast_to([0.0, 0.0, 1.0], (len(box_quat_w), 3)))
 
 
 def _descends(model: mujoco.MjModel, body: int, root: int) -> bool:
