@@ -1,7 +1,7 @@
 """Retarget fidelity on the five shared clips: one table of what users measure.
 
     python benchmarks/fidelity.py [--data ../shared/data] [--out out/fidelity] [--references DIR]
-                                  [--json fidelity.json] [--true-surface]
+                                  [--json fidelity.json] [--true-surface] [--config YAML]
 
 Retargets (native scale, objects free) OMOMO ``sub3_largebox_003``, ``sub2_largetable_004``,
 ``sub2_woodchair_000`` and AMASS ``smplh_walk_jog_turn``, ``smplx_steps_deep_squat`` with the
@@ -102,6 +102,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="score the references in this folder (named after the clips) instead of retargeting")
     ap.add_argument("--clips", nargs="*", default=list(CLIPS), help="clips relative to --data")
     ap.add_argument("--json", type=Path, default=None, help="write every metric here")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="retarget with this YAML (as `otr retarget --config`; default configs/retarget/default.yaml)")
     ap.add_argument("--true-surface", action="store_true",
                     help="score against Unitree's original meshes (mjlab wheel) instead of the shipped ones")
     args = ap.parse_args(argv)
@@ -125,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
 
             ref_path = args.out / f"{name}.npz"
             start = time.perf_counter()
-            reference, timing = retarget_timed(load_demonstration(demo_path), load_config())
+            reference, timing = retarget_timed(load_demonstration(demo_path), load_config(args.config))
             reference.save(ref_path)
             ms_per_frame = timing.ms_per_frame
             print(f"{name}: retargeted in {time.perf_counter() - start:.1f} s", flush=True)

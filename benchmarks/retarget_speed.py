@@ -85,7 +85,8 @@ def run_clip(label: str, load, frames: int | None) -> dict:
                        annotations={k: v[s] for k, v in demo.annotations.items()})
     start = time.perf_counter()
     problem = build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
-                            solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m, seed=cfg.seed, stance=cfg.stance)
+                            solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m, seed=cfg.seed, stance=cfg.stance,
+                            links_together=cfg.links_together)
     setup = time.perf_counter() - start
     stamps = [time.perf_counter()]
     cpu0 = time.process_time()

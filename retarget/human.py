@@ -89,6 +89,20 @@ G1_LINK_PARTS: dict[str, tuple[str, ...]] = {
     "right_wrist_yaw_link": ("R_Wrist",),
 }
 
+#: Groupings of G1 links that ``retarget.transport.link_correspondences`` matches with their
+#: shared human parts as one target cloud (``RetargetConfig.links_together``); every other link
+#: is matched alone. "none" (default): each link alone, so a small housing spreads its targets
+#: over the whole part it shares. "hand": the wrist pitch housing and the hand together, so the
+#: housing takes the hand's near (wrist) end. "shared_parts": every set of links that take the
+#: same parts (hip, waist, shoulder housings; elbow and wrist roll; wrist pitch and hand).
+LINK_GROUPINGS: dict[str, tuple[tuple[str, ...], ...]] = {
+    "none": (),
+    "hand": tuple((f"{side}_wrist_pitch_link", f"{side}_wrist_yaw_link") for side in ("left", "right")),
+    "shared_parts": tuple(group for group in (
+        tuple(link for link in G1_LINK_PARTS if G1_LINK_PARTS[link] == parts)
+        for parts in dict.fromkeys(G1_LINK_PARTS.values())) if len(group) > 1),
+}
+
 #: G1 link -> human part h(ℓ) for the style targets R̂_ℓ = R_h(ℓ) O_ℓ (paper Sec. III-D). The
 #: links are those whose orientation a human segment fixes: the yaw links carry the thigh and
 #: upper-arm twist, the ankle roll link is the foot, the wrist yaw link is the hand.

@@ -68,6 +68,9 @@ class RetargetConfig:
     max_probes_per_link: int | None = None
     #: Seed of every probe sampling.
     seed: int = 0
+    #: Which G1 links share one OT plan with their human parts (``retarget.human.LINK_GROUPINGS``:
+    #: none | hand | shared_parts); "none" matches each link alone, as the references were made.
+    links_together: str = "none"
     geometry: GeometryConfig = field(default_factory=GeometryConfig)
     interaction: InteractionConfig = field(default_factory=InteractionConfig)
     style: StyleConfig = field(default_factory=StyleConfig)
@@ -95,6 +98,10 @@ def load_config(path: str | Path | None = None, **overrides) -> RetargetConfig:
 
     if cfg.mode not in MODES:
         raise ConfigError(f"unknown mode '{cfg.mode}' (choose from {MODES})")
+    from retarget.human import LINK_GROUPINGS
+
+    if cfg.links_together not in LINK_GROUPINGS:
+        raise ConfigError(f"unknown links_together '{cfg.links_together}' (choose from {sorted(LINK_GROUPINGS)})")
     if cfg.fps is not None and not cfg.fps > 0:
         raise ConfigError(f"fps must be > 0, got {cfg.fps}")
     return cfg
@@ -145,7 +152,8 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
         demo = resample_demonstration(demo, cfg.fps)
     problem = build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
                             solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m,
-                            max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance)
+                            max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance,
+                            links_together=cfg.links_together)
     finish_warmup()  # the kernels a first run's command line began compiling beside the grids
     built = time.perf_counter()
     sol = solve_sequence(problem, progress)

@@ -318,11 +318,16 @@ def mode_scale(demo: Demonstration, mode: str) -> float:
 
 
 def correspondences(robot_set: ProbeSet, human: ProbeSet, demo: Demonstration, scale: float,
-                    cache_dir: Path | None) -> np.ndarray:
-    """src(p) (P_robot,): index into ``human`` of every robot probe's demonstrated point (OT)."""
+                    cache_dir: Path | None, links_together: str = "none") -> np.ndarray:
+    """src(p) (P_robot,): index into ``human`` of every robot probe's demonstrated point (OT);
+    ``links_together`` names a ``retarget.human.LINK_GROUPINGS`` entry."""
+    from retarget.human import LINK_GROUPINGS
     from retarget.transport import robot_human_correspondences
 
-    return robot_human_correspondences(robot_set, human, demo, scale=scale, cache_dir=cache_dir)
+    if links_together not in LINK_GROUPINGS:
+        raise ValueError(f"unknown links_together '{links_together}' (choose from {sorted(LINK_GROUPINGS)})")
+    return robot_human_correspondences(robot_set, human, demo, scale=scale, cache_dir=cache_dir,
+                                       together=LINK_GROUPINGS[links_together])
 
 
 def _object_channel(obj: DemoObject, geometry: GeometryConfig, cache_dir: Path | None) -> SDFChannel:
@@ -335,7 +340,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                   interaction: InteractionConfig = InteractionConfig(), style: StyleConfig = StyleConfig(),
                   solver: SolverConfig = SolverConfig(), guard_spacing_m: float = 0.008,
                   max_probes_per_link: int | None = None, seed: int = 0, cache_dir: Path | None = None,
-                  stance: StanceConfig = StanceConfig()) -> Problem:
+                  stance: StanceConfig = StanceConfig(), links_together: str = "none") -> Problem:
     """Probes, channels, correspondences and style targets of ``demo`` (at its own fps)."""
     scale = mode_scale(demo, mode)
     kin = kinematics()
@@ -344,7 +349,7 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
     part_rot = quat_to_matrix(demo.part_quat_w)
     human = human_probes(demo.surface, geometry.human_density_per_m2, seed, scale)
     robot_set = robot_probes(geometry.robot_density_per_m2, seed, max_probes_per_link)
-    src = correspondences(robot_set, human, demo, scale, cache_dir)
+    src = correspondences(robot_set, human, demo, scale, cache_dir, links_together)
     demo_points = ProbeSet(human.body_names, human.points[src], human.body[src])
 
     eye = np.broadcast_to(np.eye(3), (T, 3, 3))

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import warnings
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -166,41 +166,58 @@ class LinkCorrespondence:
 
 def link_correspondences(human_clouds: Mapping[str, np.ndarray], robot_clouds: Mapping[str, np.ndarray],
                          pairs: Mapping[str, tuple[str, ...]] | None = None, cfg: TransportConfig = TransportConfig(),
-                         cache_dir: Path | None = None) -> dict[str, LinkCorrespondence]:
+                         cache_dir: Path | None = None,
+                         together: Sequence[Sequence[str]] = ()) -> dict[str, LinkCorrespondence]:
     """OT correspondences of every G1 link in ``robot_clouds`` from its human parts.
 
     human_clouds: part name -> (N, 3) T-pose points; robot_clouds: link name -> (M, 3) T-pose
     points, both in the world frame (orientation matters). ``pairs`` maps a link to its human
     parts (default ``retarget.human.G1_LINK_PARTS``); a link with several parts transports from
-    their concatenated cloud. Unknown names raise KeyError naming them.
+    their concatenated cloud. ``together`` lists groups of links that take the same parts and
+    are matched with them as one target cloud (``retarget.human.LINK_GROUPINGS``); every other
+    link is matched alone. Unknown names raise
+    KeyError naming them; a group whose links take different parts raises ValueError.
     """
     if pairs is None:
         from retarget.human import G1_LINK_PARTS as pairs
-    out = {}
-    for link, target in robot_clouds.items():
+    group_of = {link: tuple(group) for group in together for link in group}
+    groups: dict[tuple[str, ...], list[str]] = {}
+    for link in robot_clouds:
         if link not in pairs:
             raise KeyError(f"G1 link '{link}' has no human parts in the pair table (known: {sorted(pairs)})")
-        parts = tuple(pairs[link])
+        group = group_of.get(link, (link,))
+        if len({tuple(pairs.get(other, ())) for other in group}) > 1:
+            raise ValueError(f"links {list(group)} are transported together but take different human parts "
+                             f"{[pairs.get(other) for other in group]}")
+        groups.setdefault(group, []).append(link)
+    out = {}
+    for links in groups.values():
+        parts = tuple(pairs[links[0]])
         missing = [p for p in parts if p not in human_clouds]
         if missing:
-            raise KeyError(f"G1 link '{link}': no cloud for human parts {missing} (given: {sorted(human_clouds)})")
+            raise KeyError(f"G1 link '{links[0]}': no cloud for human parts {missing} (given: {sorted(human_clouds)})")
         clouds = [_check_cloud(f"human part '{p}'", human_clouds[p], allow_empty=True) for p in parts]
+        targets = [_check_cloud(f"G1 link '{link}'", robot_clouds[link]) for link in links]
         ends = np.cumsum([len(c) for c in clouds])
-        src = correspondence(np.concatenate(clouds), target, cfg, cache_dir=cache_dir,
-                             name=f"{'+'.join(parts)} -> {link}")
+        src = correspondence(np.concatenate(clouds), np.concatenate(targets), cfg, cache_dir=cache_dir,
+                             name=f"{'+'.join(parts)} -> {'+'.join(links)}")
         part = np.searchsorted(ends, src, side="right")
-        out[link] = LinkCorrespondence(link, parts, src, part, src - np.concatenate([[0], ends[:-1]])[part])
-    return out
+        index = src - np.concatenate([[0], ends[:-1]])[part]
+        bounds = np.cumsum([0] + [len(t) for t in targets])
+        for link, lo, hi in zip(links, bounds[:-1], bounds[1:]):
+            out[link] = LinkCorrespondence(link, parts, src[lo:hi], part[lo:hi], index[lo:hi])
+    return {link: out[link] for link in robot_clouds}
 
 
 def robot_human_correspondences(robot_set: ProbeSet, human: ProbeSet, demo: Demonstration, *, scale: float = 1.0,
-                                cfg: TransportConfig = TransportConfig(),
-                                cache_dir: Path | None = None) -> np.ndarray:
+                                cfg: TransportConfig = TransportConfig(), cache_dir: Path | None = None,
+                                together: Sequence[Sequence[str]] = ()) -> np.ndarray:
     """src(p) (P_robot,): index into ``human`` of every robot probe's corresponding human probe.
 
     Probes are in body frames (robot link frames; human part frames × ``scale``); both bodies
     are put in their T-pose (the demonstrator's shape, ``retarget.human``) and every link is
-    matched with its human parts by :func:`link_correspondences`.
+    matched with its human parts by :func:`link_correspondences` (alone, or in its group of
+    ``together``).
     """
     from otr_gym.rotations import quat_to_matrix
     from retarget.human import HumanModel, g1_tpose_body_poses, human_tpose
@@ -215,7 +232,8 @@ def robot_human_correspondences(robot_set: ProbeSet, human: ProbeSet, demo: Demo
     robot_idx = {name: np.flatnonzero(robot_set.body == k) for k, name in enumerate(robot_set.body_names)}
     robot_idx = {name: idx for name, idx in robot_idx.items() if len(idx)}
     table = link_correspondences({n: human_w[i] for n, i in human_idx.items()},
-                                 {n: robot_w[i] for n, i in robot_idx.items()}, cfg=cfg, cache_dir=cache_dir)
+                                 {n: robot_w[i] for n, i in robot_idx.items()}, cfg=cfg, cache_dir=cache_dir,
+                                 together=together)
     src = np.empty(len(robot_set), dtype=np.int64)
     for link, corr in table.items():
         src[robot_idx[link]] = np.concatenate([human_idx[p] for p in corr.parts])[corr.source]

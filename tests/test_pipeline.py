@@ -51,6 +51,14 @@ def test_unknown_config_key_is_named(tmp_path):
         load_config(bad)
 
 
+def test_unknown_link_grouping_is_named_with_the_choices(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("links_together: arms\n")
+    with pytest.raises(ConfigError, match=r"unknown links_together 'arms' \(choose from \['hand', 'none', 'shared_parts'\]\)"):
+        load_config(bad)
+    assert load_config(links_together="hand").links_together == "hand"
+
+
 def test_folder_is_retargeted_then_skipped_on_the_second_run(tiny, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(_args(str(tiny), "--out", str(out), "--mode", "robot-only")) == 0

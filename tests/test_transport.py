@@ -143,6 +143,30 @@ def test_link_with_several_parts_transports_from_their_concatenated_cloud(tmp_pa
         link_correspondences({"A": upper}, {"arm": robot_cloud}, {"arm": ("A", "B")}, cache_dir=tmp_path)
 
 
+def test_links_transported_together_share_one_plan_over_their_joint_cloud(tmp_path):
+    """A housing and the segment after it, both standing for one human part, are matched as one
+    cloud: the housing takes the part's near end instead of spreading over all of it."""
+    part = ellipsoid_cloud(200, [0.3, 0.05, 0.05], 16)  # one human part along x, from -0.3 to 0.3
+    housing = ellipsoid_cloud(40, [0.05, 0.05, 0.05], 17) + [-0.25, 0, 0]
+    segment = ellipsoid_cloud(120, [0.2, 0.05, 0.05], 18) + [0.1, 0, 0]
+    pairs = {"housing": ("A",), "segment": ("A",)}
+    alone = link_correspondences({"A": part}, {"housing": housing, "segment": segment}, pairs,
+                                 cache_dir=tmp_path, together=())
+    joint = link_correspondences({"A": part}, {"housing": housing, "segment": segment}, pairs,
+                                 cache_dir=tmp_path, together=[("housing", "segment")])
+    np.testing.assert_array_equal(np.concatenate([joint["housing"].source, joint["segment"].source]),
+                                  correspondence(part, np.concatenate([housing, segment]), cache_dir=tmp_path))
+    np.testing.assert_array_equal(alone["housing"].source, correspondence(part, housing, cache_dir=tmp_path))
+    # alone, the housing's targets spread over the whole part (both ends); together, its near end
+    assert part[alone["housing"].source, 0].min() < -0.2 and part[alone["housing"].source, 0].max() > 0.2
+    assert part[joint["housing"].source, 0].max() < -0.05
+    assert list(joint) == ["housing", "segment"] and joint["segment"].parts == ("A",)
+    with pytest.raises(ValueError, match="take different human parts"):
+        link_correspondences({"A": part, "B": part}, {"housing": housing, "segment": segment},
+                             {"housing": ("A",), "segment": ("B",)}, cache_dir=tmp_path,
+                             together=[("housing", "segment")])
+
+
 @pytest.fixture(scope="module")
 def tpose_clouds():
     """Human part and G1 link probe clouds (2000 pts/m²) in their T-poses, world frame."""
