@@ -9,8 +9,10 @@ hands, does to the box. A box that slips or tips here asks the policy for more t
 carried, box position error mean / p95 in cm, box orientation error mean / max in degrees, the
 frame where the box passed the task's 25 cm object termination, then the reference's hold while no
 support carries the box: frames held, the hands' height above the box centre in half-heights
-(-1 its bottom face, +1 its top; below 0 the box hangs over its hands and tips unless squeezed),
-the box centre's height and tilt), optionally a PNG of both errors per frame.
+(-1 its bottom face, +1 its top; below 0 the box hangs over its hands and tips unless squeezed):
+that of the box point nearest each hand, then that of the hand geoms' centre (below -1: the hand
+is under the box; a hand wrapping the bottom edge reads -1 by its nearest point only), then the
+box centre's height and tilt), optionally a PNG of both errors per frame.
 
     python benchmarks/grasp_playback.py out/omomo/sub3_largebox_003.npz \\
         ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz \\
@@ -75,8 +77,9 @@ def main(argv: list[str] | None = None) -> int:
         results.append(play(ref, meshes, overrides))
         print(f"{ref}: {results[-1].frames} frames played", file=sys.stderr)
     print("| reference | frames carried | box error cm mean / p95 | orientation error deg mean / max | box past 25 cm "
-          "| frames held | hands above the box centre (half-heights) | box centre height, tilt (held) |")
-    print("|---|---|---|---|---|---|---|---|")
+          "| frames held | hands above the box centre (half-heights) | hand centres above it | "
+          "box centre height, tilt (held) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         print(r.row())
     if args.png:

@@ -46,8 +46,8 @@ class Playback:
         pos, ori = np.asarray(self.pos_error_cm), np.asarray(self.ori_error_deg)
         end = "–" if self.ended_at is None else f"frame {self.ended_at}"
         g = self.grasp
-        hold = "– | – | –" if g is None else \
-            f"{g.frames} | {g.hand_height:+.2f} | {g.centre_height_m:.2f} m, {g.tilt_deg:.0f}°"
+        hold = "– | – | – | –" if g is None else \
+            f"{g.frames} | {g.hand_height:+.2f} | {g.hand_centre_height:+.2f} | {g.centre_height_m:.2f} m, {g.tilt_deg:.0f}°"
         return (f"| {Path(self.reference).name} | {self.frames} / {self.clip_frames - 1} | {pos.mean():.1f} / "
                 f"{np.percentile(pos, 95):.1f} | {ori.mean():.1f} / {ori.max():.1f} | {end} | {hold} |")
 

@@ -557,6 +557,7 @@ def test_held_grasp_tells_a_box_held_at_its_side_from_one_hung_over_the_hand(box
     beside, task = grasp(ref)
     assert 40 <= beside.frames <= 52  # frames 60-99 plus the approach within the 5 cm window
     assert abs(beside.hand_height) < 0.5 and beside.tilt_deg == pytest.approx(0.0, abs=1e-3)
+    assert abs(beside.hand_centre_height) < 0.5  # the hand beside the box: its centre too
     assert beside.centre_height_m == pytest.approx(ref.objects[0].pos_w[60:100, 2].mean(), abs=0.03)
 
     # the box put on the hand from above (frames 45-104, the approach included): its bottom face
@@ -579,6 +580,8 @@ def test_held_grasp_tells_a_box_held_at_its_side_from_one_hung_over_the_hand(box
     on_hand, _ = grasp(over)
     assert on_hand.frames >= 55
     assert on_hand.hand_height == pytest.approx(-1.0, abs=0.02)
+    # the hand geoms' centre lies under the bottom face, by more than the 1 cm gap
+    assert on_hand.hand_centre_height < -1.0 - 0.01 / BOX_HALF_M
     assert on_hand.centre_height_m == pytest.approx(max(tops) + 0.01 + BOX_HALF_M, abs=0.01)
 
     turned = Reference.load(box_reference_geometry)

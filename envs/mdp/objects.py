@@ -230,10 +230,13 @@ class _Geometry:
         self._fromto = np.zeros(6)  # mj_geomDistance's nearest points, reused by every query
 
     def distances(self, ref: Reference, moving: list[int], static: list[int], hands: bool,
-                  hand_points: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
+                  hand_points: np.ndarray | None = None,
+                  hand_centres: np.ndarray | None = None) -> tuple[np.ndarray | None, np.ndarray]:
         """((T, H, M) hand–object distances or None, (T, M, S) object–support distances), m.
         With ``hands``, a (T, H, M, 3) ``hand_points`` is filled with the world point of each
-        object nearest each hand (NaN where farther than ``_FAR_M``) in the same pass."""
+        object nearest each hand (NaN where farther than ``_FAR_M``) and a (T, H, 3)
+        ``hand_centres`` with the mean world centre of each hand's collision geoms, in the same
+        pass."""
         d = self.data
         names = [ref.objects[i].name for i in moving]
         supports = ([self.ground] if self.cfg.support_ground else []) + \
@@ -248,6 +251,9 @@ class _Geometry:
                 d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t],
                                                                                   ref.objects[i].quat_w[t]]
             mujoco.mj_kinematics(self.model, d)
+            if hands and hand_centres is not None:
+                for h, hand in enumerate(self.hand_geoms):
+                    hand_centres[t, h] = d.geom_xpos[hand].mean(axis=0)
             for k, name in enumerate(names):
                 obj = self.object_geoms[name]
                 if hands:
@@ -282,6 +288,10 @@ class HeldGrasp:
     #: up axis, in half-heights: -1 the bottom face, 0 the centre, +1 the top face; mean over the
     #: held frames and the hands within reach
     hand_height: float
+    #: the same for the mean centre of the hand's collision geoms: it tells a hand on the box's
+    #: side (between -1 and +1) from one under its bottom face (below -1), which ``hand_height``
+    #: reads alike when the hand wraps the bottom edge (-1 for both)
+    hand_centre_height: float
     centre_height_m: float  # box centre, world z, mean over the held frames
     tilt_deg: float  # the box's up axis against the world vertical, mean over the held frames
 
@@ -300,7 +310,9 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
     box = shapes[0]
     geometry = _Geometry(model, objects, cfg)
     points_w = np.full((ref.num_frames, len(geometry.hand_geoms), 1, 3), np.nan)
-    hand_d, support_d = geometry.distances(ref, moving[:1], static, hands=True, hand_points=points_w)
+    centres_w = np.full((ref.num_frames, len(geometry.hand_geoms), 3), np.nan)
+    hand_d, support_d = geometry.distances(ref, moving[:1], static, hands=True, hand_points=points_w,
+                                           hand_centres=centres_w)
     near = hand_d[:, :, 0] < cfg.proximity_threshold_m  # (T, H)
     resting = (support_d[:, 0] < cfg.support_threshold_m).any(-1)  # (T,)
     held = near.any(-1) & ~resting
@@ -312,12 +324,15 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
     up = int(np.argmax(np.abs(vertical_b[resting if resting.any() else [0]]).sum(0)))
     frames = np.flatnonzero(held)
     centre_w = obj.pos_w[frames] + quat_apply(obj.quat_w[frames], box.pos)  # (N, 3)
-    held_points = points_w[frames, :, 0]  # (N, H, 3)
-    points_b = quat_apply_inverse(np.broadcast_to(box_quat_w[frames, None], held_points.shape[:-1] + (4,)),
-                                  held_points - centre_w[:, None])
-    height = (points_b[..., up] / box.half_extents[up])[near[frames]]
+
+    def height(points: np.ndarray) -> float:  # (N, H, 3) world -> mean height over the hands within reach
+        points_b = quat_apply_inverse(np.broadcast_to(box_quat_w[frames, None], points.shape[:-1] + (4,)),
+                                      points - centre_w[:, None])
+        return float(np.nanmean((points_b[..., up] / box.half_extents[up])[near[frames]]))
+
     tilt = np.degrees(np.arccos(np.clip(np.abs(vertical_b[frames, up]), 0.0, 1.0)))
-    return HeldGrasp(len(frames), float(np.nanmean(height)), float(centre_w[:, 2].mean()), float(tilt.mean()))
+    return HeldGrasp(len(frames), height(points_w[frames, :, 0]), height(centres_w[frames]),
+                     float(centre_w[:, 2].mean()), float(tilt.mean()))
 
 
 def _vertical_in_box(quat_w: np.ndarray, box: BoxShape) -> np.ndarray:
