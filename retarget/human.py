@@ -103,6 +103,13 @@ LINK_GROUPINGS: dict[str, tuple[tuple[str, ...], ...]] = {
         for parts in dict.fromkeys(G1_LINK_PARTS.values())) if len(group) > 1),
 }
 
+
+def link_grouping(name: str) -> tuple[tuple[str, ...], ...]:
+    """The groups of ``LINK_GROUPINGS[name]``; an unknown name raises ValueError naming the choices."""
+    if name not in LINK_GROUPINGS:
+        raise ValueError(f"unknown links_together '{name}' (choose from {sorted(LINK_GROUPINGS)})")
+    return LINK_GROUPINGS[name]
+
 #: G1 link -> human part h(ℓ) for the style targets R̂_ℓ = R_h(ℓ) O_ℓ (paper Sec. III-D). The
 #: links are those whose orientation a human segment fixes: the yaw links carry the thigh and
 #: upper-arm twist, the ankle roll link is the foot, the wrist yaw link is the hand.

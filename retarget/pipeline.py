@@ -98,10 +98,12 @@ def load_config(path: str | Path | None = None, **overrides) -> RetargetConfig:
 
     if cfg.mode not in MODES:
         raise ConfigError(f"unknown mode '{cfg.mode}' (choose from {MODES})")
-    from retarget.human import LINK_GROUPINGS
+    from retarget.human import link_grouping
 
-    if cfg.links_together not in LINK_GROUPINGS:
-        raise ConfigError(f"unknown links_together '{cfg.links_together}' (choose from {sorted(LINK_GROUPINGS)})")
+    try:
+        link_grouping(cfg.links_together)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from exc
     if cfg.fps is not None and not cfg.fps > 0:
         raise ConfigError(f"fps must be > 0, got {cfg.fps}")
     return cfg

@@ -321,13 +321,11 @@ def correspondences(robot_set: ProbeSet, human: ProbeSet, demo: Demonstration, s
                     cache_dir: Path | None, links_together: str = "none") -> np.ndarray:
     """src(p) (P_robot,): index into ``human`` of every robot probe's demonstrated point (OT);
     ``links_together`` names a ``retarget.human.LINK_GROUPINGS`` entry."""
-    from retarget.human import LINK_GROUPINGS
+    from retarget.human import link_grouping
     from retarget.transport import robot_human_correspondences
 
-    if links_together not in LINK_GROUPINGS:
-        raise ValueError(f"unknown links_together '{links_together}' (choose from {sorted(LINK_GROUPINGS)})")
     return robot_human_correspondences(robot_set, human, demo, scale=scale, cache_dir=cache_dir,
-                                       together=LINK_GROUPINGS[links_together])
+                                       together=link_grouping(links_together))
 
 
 def _object_channel(obj: DemoObject, geometry: GeometryConfig, cache_dir: Path | None) -> SDFChannel:

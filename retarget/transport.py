@@ -175,8 +175,8 @@ def link_correspondences(human_clouds: Mapping[str, np.ndarray], robot_clouds: M
     parts (default ``retarget.human.G1_LINK_PARTS``); a link with several parts transports from
     their concatenated cloud. ``together`` lists groups of links that take the same parts and
     are matched with them as one target cloud (``retarget.human.LINK_GROUPINGS``); every other
-    link is matched alone. Unknown names raise
-    KeyError naming them; a group whose links take different parts raises ValueError.
+    link is matched alone. Unknown names raise KeyError naming them; a group whose links take
+    different parts raises ValueError.
     """
     if pairs is None:
         from retarget.human import G1_LINK_PARTS as pairs
