@@ -70,8 +70,8 @@ def _clips():
 def run_clip(label: str, load, frames: int | None) -> dict:
     import numpy as np
 
-    from retarget.pipeline import RetargetConfig
-    from retarget.problem import build_problem, resample_demonstration
+    from retarget.pipeline import RetargetConfig, problem_from_config
+    from retarget.problem import resample_demonstration
     from retarget.solver import solve_sequence
 
     cfg = RetargetConfig()
@@ -84,9 +84,7 @@ def run_clip(label: str, load, frames: int | None) -> dict:
                        objects=[replace(o, pos_w=o.pos_w[s], quat_w=o.quat_w[s]) for o in demo.objects],
                        annotations={k: v[s] for k, v in demo.annotations.items()})
     start = time.perf_counter()
-    problem = build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
-                            solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m, seed=cfg.seed, stance=cfg.stance,
-                            links_together=cfg.links_together)
+    problem = problem_from_config(demo, cfg)
     setup = time.perf_counter() - start
     stamps = [time.perf_counter()]
     cpu0 = time.process_time()

@@ -94,7 +94,10 @@ G1_LINK_PARTS: dict[str, tuple[str, ...]] = {
 #: is matched alone. "none" (default): each link alone, so a small housing spreads its targets
 #: over the whole part it shares. "hand": the wrist pitch housing and the hand together, so the
 #: housing takes the hand's near (wrist) end. "shared_parts": every set of links that take the
-#: same parts (hip, waist, shoulder housings; elbow and wrist roll; wrist pitch and hand).
+#: same parts (hip, waist, shoulder housings; elbow and wrist roll; wrist pitch and hand). The
+#: evaluation's body units (``retarget.evaluation.units.group_units``) are the wider, connected
+#: form (links sharing *any* part: also torso with the shoulder pitch housings, both ankle links);
+#: a grouping here needs the same parts for all its links, as one plan transports from one cloud.
 LINK_GROUPINGS: dict[str, tuple[tuple[str, ...], ...]] = {
     "none": (),
     "hand": tuple((f"{side}_wrist_pitch_link", f"{side}_wrist_yaw_link") for side in ("left", "right")),

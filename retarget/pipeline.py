@@ -136,6 +136,16 @@ class Timing:
         return 1000.0 * self.solve_s / max(self.frames, 1)
 
 
+def problem_from_config(demo, cfg: RetargetConfig):
+    """``retarget.problem.build_problem`` of ``demo`` (at its own fps) with every setting of ``cfg``."""
+    from retarget.problem import build_problem
+
+    return build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
+                         solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m,
+                         max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance,
+                         links_together=cfg.links_together)
+
+
 def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     """``retarget_demonstration`` that also returns its ``Timing``."""
     from otr_gym.reference import ContactAnnotations, ObjectTrack, Reference
@@ -146,16 +156,13 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
         matrix_to_quat,
     )
     from retarget.kernel_warmup import finish_warmup
-    from retarget.problem import build_problem, mode_scale, resample_demonstration
+    from retarget.problem import mode_scale, resample_demonstration
     from retarget.solver import solve_sequence
 
     start = time.perf_counter()
     if cfg.fps is not None:
         demo = resample_demonstration(demo, cfg.fps)
-    problem = build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
-                            solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m,
-                            max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance,
-                            links_together=cfg.links_together)
+    problem = problem_from_config(demo, cfg)
     finish_warmup()  # the kernels a first run's command line began compiling beside the grids
     built = time.perf_counter()
     sol = solve_sequence(problem, progress)

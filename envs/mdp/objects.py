@@ -135,7 +135,7 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
             # the box axis that stands vertical in the frames the object rests on a support
             rests = (support_d[:, k] < cfg.support_threshold_m).any(-1)
             if rests.any():
-                up = np.abs(_vertical_in_box(ref.objects[i].quat_w[rests], box))
+                up = np.abs(_vertical_in_box(quat_mul(ref.objects[i].quat_w[rests], box.quat_wxyz)))
                 resting[k] += np.bincount(np.argmax(up, axis=-1), minlength=3)
             local = quat_apply_inverse(np.broadcast_to(box.quat_wxyz, target[:, :, k].shape[:-1] + (4,)),
                                        target[:, :, k] - box.pos)
@@ -320,7 +320,7 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
         return None
     obj = ref.objects[moving[0]]
     box_quat_w = quat_mul(obj.quat_w, box.quat_wxyz)  # (T, 4)
-    vertical_b = _vertical_in_box(obj.quat_w, box)  # (T, 3)
+    vertical_b = _vertical_in_box(box_quat_w)  # (T, 3)
     up = int(np.argmax(np.abs(vertical_b[resting if resting.any() else [0]]).sum(0)))
     frames = np.flatnonzero(held)
     centre_w = obj.pos_w[frames] + quat_apply(obj.quat_w[frames], box.pos)  # (N, 3)
@@ -335,9 +335,9 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
                      float(centre_w[:, 2].mean()), float(tilt.mean()))
 
 
-def _vertical_in_box(quat_w: np.ndarray, box: BoxShape) -> np.ndarray:
-    """(T, 3) the world vertical in the box's frame, for object orientations ``quat_w`` (T, 4) wxyz."""
-    box_quat_w = quat_mul(quat_w, box.quat_wxyz)
+def _vertical_in_box(box_quat_w: np.ndarray) -> np.ndarray:
+    """(T, 3) the world vertical in the box's frame, for box orientations ``box_quat_w`` (T, 4)
+    wxyz, world (the object's orientation times the box shape's)."""
     return quat_apply_inverse(box_quat_w, np.broadcast_to([0.0, 0.0, 1.0], (len(box_quat_w), 3)))
 
 
