@@ -2,7 +2,8 @@
 
 ``otr evaluate`` gives means over episodes; this follows the single env of the evaluation
 protocol (frame 0, no randomisation, mean action; the same loop as ``agents.evaluate``) and
-records after every step the reference frame, the root-relative MPJPE, how far the robot's
+records after every step the reference frame, the root-relative MPJPE and each tracked body's
+share of it (which bodies carry the error, and when), how far the robot's
 anchor (torso) is from the reference anchor horizontally, and for the moving objects (box
 task) the position error, the height offset from the reference (negative: below it) and the
 orientation error, each a mean over the moving objects. It names what ended the episode:
@@ -29,7 +30,7 @@ from agents.policy import load_policy
 from agents.vecenv import make_vec_env
 from envs.mdp.metrics import (
     anchor_horizontal_error_m,
-    mpjpe_root_relative,
+    body_position_error_root_relative,
     object_orientation_error_rad,
     object_position_error_m,
 )
@@ -55,10 +56,20 @@ class EpisodeTrace:
     ended_by: list[str]  # the termination terms that fired at the last step, or [CLIP_END]
     success: bool
     object_termination_cm: float | None = None  # the run's object position termination, if any
+    body_names: list[str] | None = None  # the tracked bodies, in the order of body_error_mm's rows
+    body_error_mm: list[list[float]] | None = None  # per step, per body: root-relative error (mm)
 
     @property
     def steps(self) -> int:
         return len(self.frame)
+
+    def body_means_mm(self) -> list[tuple[str, float]]:
+        """(body, mean root-relative error over the episode, mm), largest first; the MPJPE is
+        their mean."""
+        if not self.body_error_mm:
+            return []
+        means = np.asarray(self.body_error_mm).mean(0)
+        return sorted(zip(self.body_names, means.tolist()), key=lambda kv: -kv[1])
 
     def rows(self, every: int = 10) -> list[str]:
         """A Markdown table: every ``every``-th step and the last."""
@@ -95,7 +106,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     has_objects = vec.tracking_state.objects is not None
     term = vec.task.cfg.terminations.get("object_pos")
     threshold = term.params.get("threshold_m") if term is not None else None
-    cols: dict[str, list] = {k: [] for k in ("frame", "mpjpe", "lag", "pos", "height", "ori")}
+    cols: dict[str, list] = {k: [] for k in ("frame", "mpjpe", "bodies", "lag", "pos", "height", "ori")}
     ended_by, success = [], False
     try:
         for _ in range(int(vec.motion.clip_length.max()) + 1):
@@ -104,7 +115,9 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
             obs, _, terminated, truncated, info = vec.step(actions)
             s = vec.tracking_state
             cols["frame"].append(frame)
-            cols["mpjpe"].append(1000.0 * float(mpjpe_root_relative(s)[0]))
+            bodies_mm = 1000.0 * body_position_error_root_relative(s)[0]
+            cols["mpjpe"].append(float(bodies_mm.mean()))
+            cols["bodies"].append(bodies_mm.tolist())
             cols["lag"].append(100.0 * float(anchor_horizontal_error_m(s)[0]))
             if has_objects:
                 o = s.objects
@@ -126,12 +139,14 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
         object_height_error_cm=cols["height"] if has_objects else None,
         object_ori_error_deg=cols["ori"] if has_objects else None,
         ended_by=ended_by, success=success,
-        object_termination_cm=None if threshold is None else 100.0 * float(threshold))
+        object_termination_cm=None if threshold is None else 100.0 * float(threshold),
+        body_names=list(vec.tracking_state.body_names), body_error_mm=cols["bodies"])
 
 
 def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
-    """Panels against the reference frame: MPJPE and anchor lag; for objects, position and
-    height error (with the object termination's distance) and orientation error."""
+    """Panels against the reference frame: MPJPE, the three bodies with the largest mean error
+    and anchor lag; for objects, position and height error (with the object termination's
+    distance) and orientation error."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -142,6 +157,9 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
     axes = axes[0]
     frames = np.asarray(trace.frame)
     axes[0].plot(frames, trace.mpjpe_mm, lw=1.1, label="MPJPE (mm)")
+    for name, _ in trace.body_means_mm()[:3]:
+        column = np.asarray(trace.body_error_mm)[:, trace.body_names.index(name)]
+        axes[0].plot(frames, column, lw=0.7, ls=":", label=f"{name} (mm)")
     axes[0].plot(frames, np.asarray(trace.anchor_lag_cm) * 10.0, lw=1.1, label="anchor lag (mm)")
     axes[0].set_title("tracking", fontsize=9)
     if objects:
@@ -180,6 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     print("\n".join(trace.rows(args.every)))
     end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")
+    print("root-relative error per body, mean over the episode (mm): "
+          + ", ".join(f"{name} {mm:.1f}" for name, mm in trace.body_means_mm()))
     if args.png:
         print(f"wrote {plot_trace(trace, args.png)}")
     if args.json:

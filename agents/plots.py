@@ -145,6 +145,10 @@ def plot_clip_curves(run_dir: str | Path, out_png: str | Path, smooth: int = 10)
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("iteration")
         ax.grid(alpha=0.3)
+        if name in ("success_rate", "start_probability"):
+            # a fraction: a single clip's start probability is 1 ± float noise, which autoscaling
+            # would draw as a band of 1e-7 wiggles
+            ax.set_ylim(-0.02, 1.02)
     axes[0, 0].legend(fontsize=7, ncol=2)
     fig.suptitle(f"{Path(run_dir).name}: per clip (running mean over {smooth} iterations)", fontsize=10)
     fig.tight_layout()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -87,9 +88,18 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     assert trace.ended_by  # a termination's name, or the clip's end
     assert (trace.ended_by == [CLIP_END]) == trace.success
     assert trace.object_termination_cm == pytest.approx(25.0)
+    # the per-body errors are the MPJPE's parts: 14 tracked bodies, the root (pelvis) at zero
+    bodies = np.asarray(trace.body_error_mm)
+    assert bodies.shape == (trace.steps, 14) and len(trace.body_names) == 14
+    np.testing.assert_allclose(bodies.mean(1), trace.mpjpe_mm, rtol=1e-5)
+    assert np.all(bodies[:, trace.body_names.index("pelvis")] == 0.0)
+    means = trace.body_means_mm()
+    assert [m for _, m in means] == sorted((m for _, m in means), reverse=True)
+    assert np.mean([m for _, m in means]) == pytest.approx(final["mpjpe_mm"], rel=1e-5)
     assert episode_trace.main([str(box_run), "--every", "5", "--json", str(tmp_path / "t.json"), "--png", str(tmp_path / "t.png")]) == 0
     out = capsys.readouterr().out
     assert f"{trace.steps} steps" in out and out.count("\n| ") >= 2
+    assert f"{means[0][0]} {means[0][1]:.1f}" in out  # the per-body line, largest first
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["mpjpe_mm"] == trace.mpjpe_mm and saved["steps"] == trace.steps
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"

@@ -8,13 +8,19 @@ from envs.mdp.state import TrackingState
 from otr_gym.rotations import quat_error_angle
 
 
-def mpjpe_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
-    """(N,) mean per-joint position error (m) over the tracked bodies after subtracting each
-    side's ``root`` body position (world frame, no rotation alignment)."""
+def body_position_error_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
+    """(N, B) position error (m) of each tracked body (``s.body_names`` order) after subtracting
+    each side's ``root`` body position (world frame, no rotation alignment)."""
     r = s.body_names.index(root)
     robot_rel = s.body_pos_w - s.body_pos_w[:, r : r + 1]
     ref_rel = s.ref_body_pos_w - s.ref_body_pos_w[:, r : r + 1]
-    return torch.linalg.norm(robot_rel - ref_rel, dim=-1).mean(-1)
+    return torch.linalg.norm(robot_rel - ref_rel, dim=-1)
+
+
+def mpjpe_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
+    """(N,) mean per-joint position error (m) over the tracked bodies after subtracting each
+    side's ``root`` body position (world frame, no rotation alignment)."""
+    return body_position_error_root_relative(s, root).mean(-1)
 
 
 def mpjpe_root_relative_heading_aligned(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
