@@ -6,6 +6,9 @@ rate (50 fps, RL_SPEC §2: the clip is resampled at load exactly like this), fra
 * **jumps**: how far the pelvis lies off the straight line between its neighbours,
   |p_t − (p_{t−1} + p_{t+1})/2| = |a|·dt²/2 (1 cm at 50 fps is 5 g): a teleport of the
   reference, which no robot follows;
+* **limb jumps**: the same for the feet and hands (ankle roll and wrist yaw links), whose
+  teleports the pelvis bound does not catch: a foot held planted while the person's already
+  lifts snaps to its swing pose in one frame when the stance ends (AMASS jog: 20 cm in 1/120 s);
 * **joint speed** |q̇| (central differences) against ``robot.VELOCITY_LIMIT``;
 * **joint acceleration** |q̈| against what the joint's motor can give it alone,
   τ_max / M_ii(q): the full effort limit acting on the joint's own inertia (armature included),
@@ -25,7 +28,7 @@ Inverse dynamics (Pinocchio). v and a are Lie-group finite differences of the co
 As in inverse-dynamics practice on motion capture (Winter's 6 Hz), the twists are low-passed
 first (zero-phase Butterworth, ``lowpass_hz``) for accelerations and torques: differencing twice
 turns a retargeter's millimetre frame-to-frame jitter into accelerations of several g that the
-PD loop never follows (a 1 mm wobble at 50 fps is 0.5 g). Speeds, jumps and sliding use the raw
+PD loop never follows (a 1 mm wobble at 50 fps is 0.5 g). Speeds, jumps (pelvis and limbs) and sliding use the raw
 motion. τ_rnea = RNEA(q, v, a) = M a + h includes the armature. The floor can only push: each sole
 point (the corners of the G1 foot capsules, ``otr_gym.robot_geometry``; for every other link the
 lowest point of its collision capsules' end spheres) within ``contact_height_m`` of z = 0
@@ -62,6 +65,8 @@ from retarget.evaluation.feet import least_moving_speed
 
 GRAVITY = 9.81
 FOOT_NAMES = ("left", "right")
+#: The limbs whose jumps are measured: ``robot.FEET`` then ``robot.HANDS``.
+LIMB_NAMES = ("left foot", "right foot", "left hand", "right hand")
 
 
 @dataclass(frozen=True)
@@ -88,6 +93,9 @@ class FeasibilityCfg:
     slide_speed_mps: float = 0.05
     unsupported_fraction: float = 0.2
     jump_m: float = 0.01  # pelvis off the line of its neighbours by more (m): 5 g at 50 fps
+    #: A foot or hand off the line of its neighbours by more (m): 15 g at 50 fps, beyond a
+    #: heel strike's deceleration.
+    limb_jump_m: float = 0.03
     merge_gap_frames: int = 2  # flagged frames closer than this join one interval
     peak_separation_s: float = 0.2  # the hardest-frames table keeps one frame per window
 
@@ -113,6 +121,7 @@ class FeasibilityReport:
     cfg: FeasibilityCfg
     root_height_m: np.ndarray  # (T,)
     root_jump_m: np.ndarray  # (T,) pelvis off the line of its neighbours
+    limb_jump_m: np.ndarray  # (T, 4) feet and hands (LIMB_NAMES) off the lines of their neighbours
     joint_speed_ratio: np.ndarray  # (T, 29) |q̇| / velocity limit
     joint_accel_ratio: np.ndarray  # (T, 29) |q̈| / (τ_max / M_ii)
     torque_nm: np.ndarray  # (T, 29) contact-consistent inverse dynamics
@@ -153,6 +162,7 @@ class FeasibilityReport:
         c = self.cfg
         return {
             "jump": self.root_jump_m / c.jump_m,
+            "limb jump": self.limb_jump_m.max(axis=1) / c.limb_jump_m,
             "joint speed": self.joint_speed_ratio.max(axis=1),
             "joint accel": self.joint_accel_ratio.max(axis=1),
             "torque": self.torque_ratio.max(axis=1),
@@ -176,6 +186,9 @@ class FeasibilityReport:
         why: dict[str, str] = {}
         if self.root_jump_m[f] >= c.jump_m:
             why["jump"] = f"pelvis {100 * self.root_jump_m[f]:.1f} cm off its neighbours' line"
+        k = int(np.argmax(self.limb_jump_m[f]))
+        if self.limb_jump_m[f, k] >= c.limb_jump_m:
+            why["limb jump"] = f"{LIMB_NAMES[k]} {100 * self.limb_jump_m[f, k]:.1f} cm off its neighbours' line"
         for key, ratio, unit in (("joint speed", self.joint_speed_ratio, "velocity limit"),
                                  ("joint accel", self.joint_accel_ratio, "motor-alone limit"),
                                  ("torque", self.torque_ratio, "effort limit")):
@@ -221,6 +234,9 @@ class FeasibilityReport:
         f = int(np.argmax(self.root_jump_m))
         out["jump"] = {"peak_m": float(self.root_jump_m[f]), "time_s": float(t[f]),
                        "frames_over": int((self.root_jump_m >= self.cfg.jump_m).sum())}
+        f, k = np.unravel_index(np.argmax(self.limb_jump_m), self.limb_jump_m.shape)
+        out["limb_jump"] = {"peak_m": float(self.limb_jump_m[f, k]), "limb": LIMB_NAMES[k], "time_s": float(t[f]),
+                            "frames_over": int((self.limb_jump_m.max(axis=1) >= self.cfg.limb_jump_m).sum())}
         for key, ratio, extra in (("joint_speed", self.joint_speed_ratio, None),
                                   ("joint_accel", self.joint_accel_ratio, None),
                                   ("torque", self.torque_ratio, np.abs(self.torque_nm))):
@@ -420,17 +436,25 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
         unsup_m[t] = np.linalg.norm(tau[3:6])
 
     root = ref.root_pos_w
-    jump = np.zeros(T)
-    jump[1:-1] = np.linalg.norm(root[1:-1] - 0.5 * (root[:-2] + root[2:]), axis=1)
+    limbs = ref.body_pos_w[:, ref.body_index(list(robot.FEET + robot.HANDS))]
+    jump = _off_neighbours_line(root)
     speed_ratio = np.abs(v_raw[:, 6:]) / robot.VELOCITY_LIMIT
     accel_ratio = np.abs(a[:, 6:]) / accel_limit
     stance, slide = _stance_and_sliding(ref, cfg)
     return FeasibilityReport(
         source=str(reference.source), fps=cfg.fps, cfg=cfg, root_height_m=root[:, 2].copy(), root_jump_m=jump,
+        limb_jump_m=_off_neighbours_line(limbs),
         joint_speed_ratio=speed_ratio, joint_accel_ratio=accel_ratio, torque_nm=torque,
         torque_ratio=np.abs(torque) / robot.EFFORT_LIMIT, foot_force_w=foot_force, other_force_w=other_force,
         other_support=other_support, unsupported_force_n=unsup_f,
         unsupported_moment_nm=unsup_m, stance=stance, slide_speed_mps=slide, weight_n=weight)
+
+
+def _off_neighbours_line(p: np.ndarray) -> np.ndarray:
+    """(T, …) |p_t − (p_{t−1} + p_{t+1})/2| of positions (T, …, 3); 0 at the first and last frame."""
+    out = np.zeros(p.shape[:-1])
+    out[1:-1] = np.linalg.norm(p[1:-1] - 0.5 * (p[:-2] + p[2:]), axis=-1)
+    return out
 
 
 def _stance_and_sliding(ref, cfg: FeasibilityCfg) -> tuple[np.ndarray, np.ndarray]:
@@ -470,6 +494,9 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     j = s["jump"]
     lines.append(f"  {'jumps (pelvis off its path)':31s} peak {100 * j['peak_m']:.1f} cm (t {j['time_s']:.2f} s); "
                  f"{j['frames_over']} frames over {100 * c.jump_m:g} cm")
+    j = s["limb_jump"]
+    lines.append(f"  {'limb jumps (feet, hands)':31s} peak {100 * j['peak_m']:.1f} cm ({j['limb']}, t {j['time_s']:.2f} s); "
+                 f"{j['frames_over']} frames over {100 * c.limb_jump_m:g} cm")
     for key, label, unit in (("joint_speed", "joint speed", "x velocity limit"),
                              ("joint_accel", "joint acceleration", "x motor-alone limit"),
                              ("torque", "torque (contact-consistent ID)", "x effort limit")):
@@ -552,6 +579,8 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
     axes[5].plot(t, r.root_height_m, color="tab:gray", label="pelvis height (m)")
     axes[5].plot(t, 10 * r.root_jump_m, color="tab:red", lw=0.9, label="pelvis jump (dm)")
     axes[5].axhline(10 * r.cfg.jump_m, color="k", lw=0.8, ls="--")
+    axes[5].plot(t, 10 * r.limb_jump_m.max(axis=1), color="tab:purple", lw=0.9, label="largest limb jump (dm)")
+    axes[5].axhline(10 * r.cfg.limb_jump_m, color="tab:purple", lw=0.8, ls=":")
     axes[5].set_ylabel("m / dm", fontsize=8)
     axes[5].legend(fontsize=7, loc="upper right", ncol=2)
     axes[5].set_xlabel("time (s)")

@@ -64,7 +64,8 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
                                             problem.surface_margin[problem.feet], previous,
                                             problem.stance_cfg.touch_m, problem.turns,
                                             problem.stance_cfg.ramp_frames, problem.sweep, state.stance,
-                                            problem.stance_cfg.anchor_slip_m))
+                                            problem.stance_cfg.anchor_slip_m,
+                                            problem.stance_cfg.sweep_clearance_m))
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m

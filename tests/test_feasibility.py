@@ -88,8 +88,10 @@ def test_an_elbow_faster_than_its_motor_is_named_with_its_speed_ratio():
     assert summary["peak_ratio"] == pytest.approx(40.0 / robot.VELOCITY_LIMIT[ELBOW], rel=1e-9)
     over = np.flatnonzero(r.joint_speed_ratio[:, ELBOW] >= 1.0)
     assert over.tolist() == [21, 22]  # central differences: the two frames inside the ramp
+    assert "left_elbow" in r.reasons(21)["joint speed"] and "left_elbow" in r.reasons(22)["joint speed"]
+    # the ramp's corners (0 → 40 rad/s in one frame) also throw the hand off its path
     hard = r.hardest()
-    assert hard[0].frame in (21, 22) and "left_elbow" in hard[0].reasons["joint speed"]
+    assert 20 <= hard[0].frame <= 23 and hard[0].reasons["limb jump"].startswith("left hand ")
 
 
 def test_a_stance_foot_that_slides_is_measured_and_flagged():
@@ -110,6 +112,28 @@ def test_a_teleport_shows_as_a_pelvis_jump_on_both_sides():
     hard = r.hardest()
     assert hard[0].frame in (24, 25) and hard[0].start <= 24 and hard[0].stop >= 25
     assert "jump" in hard[0].reasons
+
+
+def test_a_foot_that_snaps_for_one_frame_is_a_limb_jump_not_a_pelvis_jump():
+    """The left knee bent 0.6 rad for frame 25 only: the pelvis stays, the left foot leaves the
+    line of its neighbours by its whole excursion there and by half of it on either side."""
+    qpos = _clip()
+    qpos[25, 7 + robot.JOINT_NAMES.index("left_knee_joint")] += 0.6
+    r = check_feasibility(_ref(qpos))
+    foot = r.limb_jump_m[:, 0]
+    ref = _ref(qpos)
+    i = ref.body_index(["left_ankle_roll_link"])[0]
+    excursion = np.linalg.norm(ref.body_pos_w[25, i] - ref.body_pos_w[24, i])
+    assert excursion > 0.1  # a real snap: ~16 cm
+    assert foot[25] == pytest.approx(excursion, rel=1e-6)
+    np.testing.assert_allclose(foot[[24, 26]], excursion / 2, rtol=1e-6)
+    assert np.delete(foot, [24, 25, 26]).max() < 1e-9 and r.limb_jump_m[:, 1:].max() < 1e-9
+    assert r.root_jump_m.max() < 1e-12
+    assert r.reasons(25)["limb jump"].startswith("left foot ") and "jump" not in r.reasons(25)
+    assert r.hardest()[0].frame in (24, 25, 26)  # the foot also slides there (it stays near the floor)
+    summary = r.summary()["limb_jump"]
+    assert summary["limb"] == "left foot" and summary["frames_over"] == 3
+    assert "limb jumps (feet, hands)" in format_report(r)
 
 
 def test_torques_match_mujoco_inverse_dynamics_of_the_same_motion():

@@ -101,6 +101,13 @@ def test_a_foot_near_the_floor_stands_unless_it_sweeps_past_the_body():
                        sweep=sweep)
     assert np.all(t.link == 7) and len(t.link) == 3  # only the sweeping foot has rows at t = 1
     assert np.isnan(t.target_w[:, :2]).all() and np.allclose(t.target_w[:, 2], 0.002)  # z held, xy free
+    # with a clearance the sweeping sole is held that high above the floor; standing soles are not
+    lifted = stance_targets(stance, 1, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, 0.002,
+                            sweep=sweep, sweep_clearance_m=0.01)
+    assert np.all(lifted.link == 7) and np.allclose(lifted.target_w[:, 2], 0.012)
+    standing = stance_targets(stance, 0, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, 0.002,
+                              sweep=sweep, sweep_clearance_m=0.01)
+    assert len(standing.link) == 6 and np.allclose(standing.target_w[:, 2], 0.002)
 
 
 def test_a_planted_sole_point_keeps_its_anchor_unless_it_slipped_too_far():
