@@ -7,8 +7,8 @@ rate (50 fps, RL_SPEC §2: the clip is resampled at load exactly like this), fra
   |p_t − (p_{t−1} + p_{t+1})/2| = |a|·dt²/2 (1 cm at 50 fps is 5 g): a teleport of the
   reference, which no robot follows;
 * **limb jumps**: the same for the feet and hands (ankle roll and wrist yaw links), whose
-  teleports the pelvis bound does not catch: a foot held planted while the person's already
-  lifts snaps to its swing pose in one frame when the stance ends (AMASS jog: 20 cm in 1/120 s);
+  teleports the pelvis bound does not catch: a foot held flat while the person rolls onto the
+  ball snaps to its swing pose in one frame when the stance ends (AMASS jog: 20 cm in 1/120 s);
 * **joint speed** |q̇| (central differences) against ``robot.VELOCITY_LIMIT``;
 * **joint acceleration** |q̈| against what the joint's motor can give it alone,
   τ_max / M_ii(q): the full effort limit acting on the joint's own inertia (armature included),
