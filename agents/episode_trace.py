@@ -157,9 +157,10 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
     axes = axes[0]
     frames = np.asarray(trace.frame)
     axes[0].plot(frames, trace.mpjpe_mm, lw=1.1, label="MPJPE (mm)")
-    for name, _ in trace.body_means_mm()[:3]:
-        column = np.asarray(trace.body_error_mm)[:, trace.body_names.index(name)]
-        axes[0].plot(frames, column, lw=0.7, ls=":", label=f"{name} (mm)")
+    if trace.body_error_mm:
+        bodies = np.asarray(trace.body_error_mm)
+        for name, _ in trace.body_means_mm()[:3]:
+            axes[0].plot(frames, bodies[:, trace.body_names.index(name)], lw=0.7, ls=":", label=f"{name} (mm)")
     axes[0].plot(frames, np.asarray(trace.anchor_lag_cm) * 10.0, lw=1.1, label="anchor lag (mm)")
     axes[0].set_title("tracking", fontsize=9)
     if objects:

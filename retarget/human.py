@@ -113,6 +113,7 @@ def link_grouping(name: str) -> tuple[tuple[str, ...], ...]:
         raise ValueError(f"unknown links_together '{name}' (choose from {sorted(LINK_GROUPINGS)})")
     return LINK_GROUPINGS[name]
 
+
 #: G1 link -> human part h(ℓ) for the style targets R̂_ℓ = R_h(ℓ) O_ℓ (paper Sec. III-D). The
 #: links are those whose orientation a human segment fixes: the yaw links carry the thigh and
 #: upper-arm twist, the ankle roll link is the foot, the wrist yaw link is the hand.

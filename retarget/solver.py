@@ -61,11 +61,8 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     previous = frames_at(problem, state, state.prev[0]) if state.prev is not None else None
     targets = replace(frame_targets(problem, t),
                       stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
-                                            problem.surface_margin[problem.feet], previous,
-                                            problem.stance_cfg.touch_m, problem.turns,
-                                            problem.stance_cfg.ramp_frames, problem.sweep, state.stance,
-                                            problem.stance_cfg.anchor_slip_m,
-                                            problem.stance_cfg.sweep_clearance_m))
+                                            problem.surface_margin[problem.feet], previous, problem.stance_cfg,
+                                            problem.turns, problem.sweep, state.stance))
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m

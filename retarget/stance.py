@@ -58,13 +58,13 @@ class StanceConfig:
     #: planted there, the G1 fell 1.3 m behind the person. ganimator's person slides its
     #: standing feet at 0.4-0.5 m/s (a third of its pelvis speed): those stay planted. The
     #: 1 m/s floor keeps the AMASS jog's slow-pelvis steps planted (0.3 m/s: ground J 98 → 92 %).
+    sweep_ratio: float = 1.0
+    sweep_floor_m_s: float = 1.0
     #: A sweeping foot's sole is held this high above the floor, free horizontally
     #: (``stance_targets``). 0 holds it on the floor, where the G1 would drag it: the AMASS jog's
     #: swing feet skim at 2.6-3.1 m/s, `retarget.verify`'s hardest frames. Below ``contact_m``
     #: the evaluation still counts the person's near-contact as kept.
     sweep_clearance_m: float = 0.0
-    sweep_ratio: float = 1.0
-    sweep_floor_m_s: float = 1.0
     #: Weight of the planting rows per foot (per m², shared by its sole points).
     weight: float = 1.0e6
     #: Sole points: hull vertices of the foot link within this height of its lowest one (m).
@@ -160,20 +160,21 @@ def demonstrated_turns(ankle_pos_w: np.ndarray, ankle_rot_w: np.ndarray, toe_pos
 
 
 def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np.ndarray, ...],
-                   floor: np.ndarray, previous: LinkFrames | None, touch_m: float,
-                   turns: FootTurns | None = None, ramp_frames: int = 1,
-                   sweep: np.ndarray | None = None, before: StanceTargets | None = None,
-                   slip_m: float = np.inf, sweep_clearance_m: float = 0.0) -> StanceTargets:
+                   floor: np.ndarray, previous: LinkFrames | None, cfg: StanceConfig,
+                   turns: FootTurns | None = None, sweep: np.ndarray | None = None,
+                   before: StanceTargets | None = None) -> StanceTargets:
     """Targets of frame t. ``stance`` (T, F); ``feet`` (F,) link indices; ``soles`` per foot its
     sole points (link frame); ``floor`` (F,) m the height a sole point must sit at; ``previous``
-    the link frames of frame t − 1's solution (None on the first frame); ``turns`` the
-    demonstrated stance turns (None: every standing foot holds still); ``ramp_frames`` the
-    frames over which the weight grows to its full value once a foot comes near the floor;
-    ``sweep`` (T, F) the frames where a foot skims the floor while it swings: its sole stays
+    the link frames of frame t − 1's solution (None on the first frame); ``cfg`` the settings
+    used here: ``touch_m``, ``ramp_frames`` (the frames over which the weight grows to its full
+    value once a foot comes near the floor), ``anchor_slip_m`` and ``sweep_clearance_m``;
+    ``turns`` the demonstrated stance turns (None: every standing foot holds still); ``sweep``
+    (T, F) the frames where a foot skims the floor while it swings: its sole stays
     ``sweep_clearance_m`` above the floor, free to move horizontally (like a touch-down);
-    ``before`` frame t − 1's targets
-    (their anchors: a point held then keeps that xy, not the previous solution's, unless the
-    solution slipped farther than ``slip_m`` from it: then it is held where it went)."""
+    ``before`` frame t − 1's targets (their anchors: a point held then keeps that xy, not the
+    previous solution's, unless the solution slipped farther than ``anchor_slip_m`` from it:
+    then it is held where it went)."""
+    touch_m, ramp_frames, slip_m = cfg.touch_m, cfg.ramp_frames, cfg.anchor_slip_m
     links, points, targets, gains = [], [], [], []
     anchors = [np.full((len(sole), 2), np.nan) for sole in soles]
     window = slice(max(t - max(ramp_frames, 1) + 1, 0), t + 1)  # the frames the ramp looks back on
@@ -186,7 +187,7 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
             since += 1
         pts = soles[f]
         target = np.full((len(pts), 3), np.nan)
-        target[:, 2] = floor[f] if stance[t, f] else floor[f] + sweep_clearance_m
+        target[:, 2] = floor[f] if stance[t, f] else floor[f] + cfg.sweep_clearance_m
         if stance[t, f] and previous is not None and t > 0 and stance[t - 1, f]:
             prev_w = pts @ previous.rot[link].T + previous.pos[link]
             touched = prev_w[:, 2] < floor[f] + touch_m

@@ -97,16 +97,18 @@ def test_a_foot_near_the_floor_stands_unless_it_sweeps_past_the_body():
     assert not (stance & sweep).any()
 
     sole = np.array([[0.1, 0.02, -0.03], [-0.05, 0.02, -0.03], [0.1, -0.02, -0.03]])
-    t = stance_targets(stance, 1, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, 0.002,
+    cfg = StanceConfig(touch_m=0.002, ramp_frames=1)
+    t = stance_targets(stance, 1, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, cfg,
                        sweep=sweep)
     assert np.all(t.link == 7) and len(t.link) == 3  # only the sweeping foot has rows at t = 1
     assert np.isnan(t.target_w[:, :2]).all() and np.allclose(t.target_w[:, 2], 0.002)  # z held, xy free
     # with a clearance the sweeping sole is held that high above the floor; standing soles are not
-    lifted = stance_targets(stance, 1, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, 0.002,
-                            sweep=sweep, sweep_clearance_m=0.01)
+    cleared = StanceConfig(touch_m=0.002, ramp_frames=1, sweep_clearance_m=0.01)
+    lifted = stance_targets(stance, 1, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, cleared,
+                            sweep=sweep)
     assert np.all(lifted.link == 7) and np.allclose(lifted.target_w[:, 2], 0.012)
-    standing = stance_targets(stance, 0, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, 0.002,
-                              sweep=sweep, sweep_clearance_m=0.01)
+    standing = stance_targets(stance, 0, np.array([7, 13]), (sole, sole), np.array([0.002, 0.002]), None, cleared,
+                              sweep=sweep)
     assert len(standing.link) == 6 and np.allclose(standing.target_w[:, 2], 0.002)
 
 
@@ -115,7 +117,7 @@ def test_a_planted_sole_point_keeps_its_anchor_unless_it_slipped_too_far():
     position, so sub-millimetre slips do not add up frame after frame; a point dragged farther
     than ``anchor_slip_m`` is held where it went."""
     from retarget.kinematics import LinkFrames
-    from retarget.stance import stance_targets
+    from retarget.stance import StanceConfig, stance_targets
 
     sole = np.array([[0.1, 0.02, -0.03], [-0.05, 0.02, -0.03]])
     stance = np.ones((3, 1), dtype=bool)
@@ -124,12 +126,13 @@ def test_a_planted_sole_point_keeps_its_anchor_unless_it_slipped_too_far():
     def frames_at(x: float) -> LinkFrames:  # the foot link 3 cm up, its sole on the floor, at x
         return LinkFrames(pos=np.array([[x, 0.0, 0.03]]), rot=np.eye(3)[None], jac=None)
 
-    first = stance_targets(stance, 1, feet, (sole,), floor, frames_at(0.0), 0.002, slip_m=0.002)
+    cfg = StanceConfig(touch_m=0.002, ramp_frames=1, anchor_slip_m=0.002)
+    first = stance_targets(stance, 1, feet, (sole,), floor, frames_at(0.0), cfg)
     assert np.allclose(first.target_w[:, :2], sole[:, :2])  # held where the solution was
     assert np.allclose(first.anchors[0], sole[:, :2])
-    kept = stance_targets(stance, 2, feet, (sole,), floor, frames_at(0.001), 0.002, before=first, slip_m=0.002)
+    kept = stance_targets(stance, 2, feet, (sole,), floor, frames_at(0.001), cfg, before=first)
     assert np.allclose(kept.target_w[:, :2], sole[:, :2])  # 1 mm slip: back to the anchor
-    dragged = stance_targets(stance, 2, feet, (sole,), floor, frames_at(0.005), 0.002, before=first, slip_m=0.002)
+    dragged = stance_targets(stance, 2, feet, (sole,), floor, frames_at(0.005), cfg, before=first)
     assert np.allclose(dragged.target_w[:, :2], sole[:, :2] + [0.005, 0.0])  # 5 mm: re-anchored
     assert np.allclose(dragged.anchors[0], sole[:, :2] + [0.005, 0.0])
 

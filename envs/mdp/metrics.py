@@ -8,13 +8,18 @@ from envs.mdp.state import TrackingState
 from otr_gym.rotations import quat_error_angle
 
 
+def _root_relative_error(s: TrackingState, ref_body_pos_w: torch.Tensor, root: str) -> torch.Tensor:
+    """(N, B) ‖(p_b − p_root) − (p̂_b − p̂_root)‖ (m) against reference positions (N, B, 3)."""
+    r = s.body_names.index(root)
+    robot_rel = s.body_pos_w - s.body_pos_w[:, r : r + 1]
+    ref_rel = ref_body_pos_w - ref_body_pos_w[:, r : r + 1]
+    return torch.linalg.norm(robot_rel - ref_rel, dim=-1)
+
+
 def body_position_error_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
     """(N, B) position error (m) of each tracked body (``s.body_names`` order) after subtracting
     each side's ``root`` body position (world frame, no rotation alignment)."""
-    r = s.body_names.index(root)
-    robot_rel = s.body_pos_w - s.body_pos_w[:, r : r + 1]
-    ref_rel = s.ref_body_pos_w - s.ref_body_pos_w[:, r : r + 1]
-    return torch.linalg.norm(robot_rel - ref_rel, dim=-1)
+    return _root_relative_error(s, s.ref_body_pos_w, root)
 
 
 def mpjpe_root_relative(s: TrackingState, root: str = "pelvis") -> torch.Tensor:
@@ -27,10 +32,7 @@ def mpjpe_root_relative_heading_aligned(s: TrackingState, root: str = "pelvis") 
     """(N,) the same MPJPE with the reference first turned by the anchors' yaw difference (the
     reward's aligned targets): posture only, heading drift not charged. A diagnostic beside
     ``mpjpe_root_relative`` (the paper's metric), which charges heading drift in full."""
-    r = s.body_names.index(root)
-    robot_rel = s.body_pos_w - s.body_pos_w[:, r : r + 1]
-    ref_rel = s.ref_body_pos_aligned_w - s.ref_body_pos_aligned_w[:, r : r + 1]
-    return torch.linalg.norm(robot_rel - ref_rel, dim=-1).mean(-1)
+    return _root_relative_error(s, s.ref_body_pos_aligned_w, root).mean(-1)
 
 
 def anchor_horizontal_error_m(s: TrackingState) -> torch.Tensor:
