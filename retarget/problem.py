@@ -46,7 +46,8 @@ from retarget.probes import (
     robot_vertex_guards,
 )
 from retarget.residuals import FIXED, InteractionConfig
-from retarget.stance import FootTurns, StanceConfig, demonstrated_stance, demonstrated_turns, sole_points
+from retarget.stance import (FootTurns, StanceConfig, demonstrated_roll, demonstrated_stance, demonstrated_turns,
+                             sole_points)
 from retarget.style import StyleConfig, StyleTargets, pelvis_height_ratio, robot_style_targets
 from retarget.substitute import Substitution, substitution_for
 
@@ -427,8 +428,8 @@ def contact_units() -> np.ndarray:
 
 def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float,
                       soles: tuple[np.ndarray, ...], cfg: StanceConfig) -> tuple[np.ndarray, np.ndarray, FootTurns]:
-    """The person's stance and sweep flags (T, F; ``demonstrated_stance``) and stance turns
-    mapped onto the G1 soles, from the foot units (the human parts of each G1 foot link,
+    """The person's stance and sweep flags (T, F; ``demonstrated_stance``), stance turns
+    mapped onto the G1 soles and roll-offs (``demonstrated_roll``), from the foot units (the human parts of each G1 foot link,
     ``retarget.human.G1_LINK_PARTS``: ankle, then toes), surface × ``scale`` (``retarget.stance``)."""
     from retarget.human import G1_LINK_PARTS
 
@@ -440,9 +441,11 @@ def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: n
                                         np.stack([least_moving_speed(v, demo.fps) for v in vertices], axis=1),
                                         least_moving_speed(part_pos_w[:, :1], demo.fps), cfg)
     boxes = np.stack([[s[:, :2].min(axis=0), s[:, :2].max(axis=0)] for s in soles])
-    turns = demonstrated_turns(part_pos_w[:, [ks[0] for ks in parts]], part_rot_w[:, [ks[0] for ks in parts]],
-                               part_pos_w[:, [ks[1] for ks in parts]], vertices, stance, boxes, cfg.pivot_min_rad)
-    return stance, sweep, turns
+    ankles, toes = part_pos_w[:, [ks[0] for ks in parts]], part_pos_w[:, [ks[1] for ks in parts]]
+    turns = demonstrated_turns(ankles, part_rot_w[:, [ks[0] for ks in parts]], toes, vertices, stance, boxes,
+                               cfg.pivot_min_rad)
+    rolling = demonstrated_roll(ankles, toes, stance, cfg.roll_tilt_rad)
+    return stance, sweep, replace(turns, rolling=rolling)
 
 
 #: Cells of an object grid within this distance of the surface get a measured error margin.

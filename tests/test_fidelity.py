@@ -136,6 +136,39 @@ def test_a_planted_sole_point_keeps_its_anchor_unless_it_slipped_too_far():
     assert np.allclose(dragged.target_w[:, :2], sole[:, :2] + [0.005, 0.0])  # 5 mm: re-anchored
     assert np.allclose(dragged.anchors[0], sole[:, :2] + [0.005, 0.0])
 
+def test_a_foot_rolling_onto_its_toes_is_held_by_its_front_edge_only():
+    """While the person's ankle-to-toe line pitches toes-down beyond ``roll_tilt_rad`` from its
+    flat stance pitch, only the G1 sole's front edge is held (its anchors kept): a held point
+    behind the edge would keep the rigid sole flat."""
+    from retarget.kinematics import LinkFrames
+    from retarget.stance import FootTurns, StanceConfig, demonstrated_roll, stance_targets
+
+    # one foot standing for 4 frames, pitched 0°, 1°, 2° then 40° toes-down from flat (its toe
+    # joint 1 cm below the ankle when flat); a second foot whose stance frames are all at 40°
+    # never rolls: each foot's flat pitch is its median over its own stance frames
+    pitch = np.radians([[0.0, 40.0], [1.0, 40.0], [2.0, 10.0], [40.0, 40.0]]) + np.arctan2(0.01, 0.15)
+    ankle = np.zeros((4, 2, 3))
+    toe = np.stack([0.15 * np.ones_like(pitch), np.zeros_like(pitch), -0.15 * np.tan(pitch)], axis=-1)
+    stance = np.array([[True, True], [True, True], [True, False], [True, True]])
+    rolling = demonstrated_roll(ankle, toe, stance, np.radians(3.0))
+    assert rolling[:, 0].tolist() == [False, False, False, True]
+    assert not rolling[:, 1].any()
+
+    sole = np.array([[0.12, 0.03, -0.03], [0.118, -0.03, -0.03], [0.05, 0.0, -0.03], [-0.05, 0.0, -0.03]])
+    feet, floor = np.array([0]), np.array([0.0])
+    flat = LinkFrames(pos=np.array([[0.2, 0.1, 0.03]]), rot=np.eye(3)[None], jac=None)
+    cfg = StanceConfig(touch_m=0.002, ramp_frames=1, roll_edge_m=0.005)
+    turns = FootTurns(np.zeros((4, 1)), np.zeros((4, 1, 2)), rolling[:, :1])
+    held = stance_targets(stance[:, :1], 2, feet, (sole,), floor, flat, cfg, turns)
+    assert len(held.link) == 4  # not rolling yet: the whole sole
+    edge = stance_targets(stance[:, :1], 3, feet, (sole,), floor, flat, cfg, turns, before=held)
+    assert np.allclose(edge.points, sole[:2])  # the two points within 5 mm of the tip
+    assert np.allclose(edge.target_w[:, :2], sole[:2, :2] + [0.2, 0.1]) and np.allclose(edge.target_w[:, 2], 0.0)
+    assert np.allclose(edge.anchors[0][:2], sole[:2, :2] + [0.2, 0.1]) and np.isnan(edge.anchors[0][2:]).all()
+    # without roll-offs (turns None) the same frame holds the whole sole
+    assert len(stance_targets(stance[:, :1], 3, feet, (sole,), floor, flat, cfg).link) == 4
+
+
 
 def test_an_open_five_faced_box_is_retargeted_as_a_shell_with_a_warning():
     from retarget.meshes import SHELL_THICKNESS_M
