@@ -22,7 +22,8 @@ a term of its own, stiff enough to act as a constraint while the QP stays well p
   from that foot's flat stance pitch, only the G1 sole's front edge (within ``roll_edge_m``
   of its tip) is held: the G1 has no toe joint, so any held point behind the edge would
   keep the whole sole flat (measured on the AMASS jog: holding the front 40 % of the sole left
-  the foot at 6° where the person's was at 53°, and it jumped 14 cm when released);
+  the foot at 6° where the person's was at 53°). This holds whether the foot stands or sweeps:
+  a rolled foot flattened onto the floor for one sweeping frame jumped 37 cm on the box carry;
 * **targets**, per stance frame: the sole points that touched the floor (within ``touch_m``
   of it) at the previous frame's solution keep their horizontal position, turned by Δψ about
   the mapped pivot, and stay on the floor. The position kept is the one the point was held
@@ -88,10 +89,14 @@ class StanceConfig:
     anchor_slip_m: float = 0.002
     #: A standing foot rolls (only its front edge is held, see the module doc) while the
     #: person's ankle-to-toe line pitches toes-down by more than this from the foot's median
-    #: stance pitch (rad; 0.05 ≈ 3°). Measured on the AMASS jog (``retarget.verify``'s limb
-    #: jumps over 3 cm): a flat hold 42 frames, peak 10.7 cm; 10° 33 frames; 3° 28, 7.6 cm.
-    #: ``inf`` holds the whole sole flat through a roll.
-    roll_tilt_rad: float = 0.05
+    #: stance pitch (rad; 0.17 ≈ 10°; ``inf`` holds the whole sole flat through a roll).
+    #: Measured 2026-11-27 (``retarget.verify``'s limb jumps over 3 cm, frames; the jog's jump
+    #: into its first leap; ``benchmarks/grasp_playback.py`` on the box carry; the fidelity
+    #: targets on the five clips): flat 42 frames, 9.9 cm, box carried at 10.5 cm;
+    #: 0.05: 26, 5.3 cm, but the box's orientation drifts 20-35° and it is lost at frame 299;
+    #: 0.1: 28, 5.7 cm, box 8.8 cm, but 5.8 mm into the chair; 0.17: 29, 7.7 cm, box 9.6 cm,
+    #: every fidelity target met. Small tilts toggle the hold on the OMOMO captures' feet.
+    roll_tilt_rad: float = 0.17
     #: Sole points within this distance of the sole's front tip (link frame x, m) form its
     #: front edge.
     roll_edge_m: float = 0.005
