@@ -429,8 +429,9 @@ def contact_units() -> np.ndarray:
 def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float,
                       soles: tuple[np.ndarray, ...], cfg: StanceConfig) -> tuple[np.ndarray, np.ndarray, FootTurns]:
     """The person's stance and sweep flags (T, F; ``demonstrated_stance``), stance turns
-    mapped onto the G1 soles and roll-offs (``demonstrated_roll``), from the foot units (the human parts of each G1 foot link,
-    ``retarget.human.G1_LINK_PARTS``: ankle, then toes), surface × ``scale`` (``retarget.stance``)."""
+    mapped onto the G1 soles and roll-offs (``demonstrated_roll``), from the foot units (the
+    human parts of each G1 foot link, ``retarget.human.G1_LINK_PARTS``: ankle, then toes),
+    surface × ``scale`` (``retarget.stance``)."""
     from retarget.human import G1_LINK_PARTS
 
     names = list(demo.surface.part_names)

@@ -87,9 +87,9 @@ class StanceConfig:
     #: within this distance of it; a foot dragged farther (the leg at its reach, the person's
     #: own foot sliding away) is held where it went instead of fighting the whole body (m).
     anchor_slip_m: float = 0.002
-    #: A standing foot rolls (only its front edge is held, see the module doc) while the
-    #: person's ankle-to-toe line pitches toes-down by more than this from the foot's median
-    #: stance pitch (rad; 0.17 ≈ 10°; ``inf`` holds the whole sole flat through a roll).
+    #: A standing or sweeping foot rolls (only its front edge is held, see the module doc)
+    #: while the person's ankle-to-toe line pitches toes-down by more than this from the foot's
+    #: median stance pitch (rad; 0.17 ≈ 10°; ``inf`` holds the whole sole flat through a roll).
     #: Measured 2026-11-27 (``retarget.verify``'s limb jumps over 3 cm, frames; the jog's jump
     #: into its first leap; ``benchmarks/grasp_playback.py`` on the box carry; the fidelity
     #: targets on the five clips): flat 42 frames, 9.9 cm, box carried at 10.5 cm;
@@ -204,7 +204,8 @@ def stance_targets(stance: np.ndarray, t: int, feet: np.ndarray, soles: tuple[np
     sole points (link frame); ``floor`` (F,) m the height a sole point must sit at; ``previous``
     the link frames of frame t − 1's solution (None on the first frame); ``cfg`` the settings
     used here: ``touch_m``, ``ramp_frames`` (the frames over which the weight grows to its full
-    value once a foot comes near the floor), ``anchor_slip_m`` and ``sweep_clearance_m``;
+    value once a foot comes near the floor), ``anchor_slip_m``, ``sweep_clearance_m`` and
+    ``roll_edge_m``;
     ``turns`` the demonstrated stance turns and roll-offs (None: every standing foot holds
     still and flat; a rolling foot holds only its sole's front edge, ``roll_edge_m``); ``sweep``
     (T, F) the frames where a foot skims the floor while it swings: its sole stays
