@@ -136,6 +136,7 @@ def test_a_planted_sole_point_keeps_its_anchor_unless_it_slipped_too_far():
     assert np.allclose(dragged.target_w[:, :2], sole[:, :2] + [0.005, 0.0])  # 5 mm: re-anchored
     assert np.allclose(dragged.anchors[0], sole[:, :2] + [0.005, 0.0])
 
+
 def test_a_foot_rolling_onto_its_toes_is_held_by_its_front_edge_only():
     """While the person's ankle-to-toe line pitches toes-down beyond ``roll_tilt_rad`` from its
     flat stance pitch, only the G1 sole's front edge is held (its anchors kept): a held point
@@ -167,7 +168,6 @@ def test_a_foot_rolling_onto_its_toes_is_held_by_its_front_edge_only():
     assert np.allclose(edge.anchors[0][:2], sole[:2, :2] + [0.2, 0.1]) and np.isnan(edge.anchors[0][2:]).all()
     # without roll-offs (turns None) the same frame holds the whole sole
     assert len(stance_targets(stance[:, :1], 3, feet, (sole,), floor, flat, cfg).link) == 4
-
 
 
 def test_an_open_five_faced_box_is_retargeted_as_a_shell_with_a_warning():
