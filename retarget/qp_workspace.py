@@ -13,15 +13,16 @@ class QPWorkspace:
     multiple of ``pad`` so that sizes repeat.
 
     If ProxQP does not converge (linearised constraints in conflict within the trust region),
-    the step is re-solved in elastic mode (``_solve_elastic``): every row gets a slack at a
+    the step is re-solved in elastic mode (``_solve_elastic``): each row's violation gets a
     price far above the objective's, so the step removes as much of the violation as the
     boxes allow instead of giving the rows up. The trust-region test then judges the step.
     """
 
-    def __init__(self, eps_abs: float, warm_start: bool = False, pad: int = 16) -> None:
+    def __init__(self, eps_abs: float, warm_start: bool = False, pad: int = 16, elastic_batch: int = 32) -> None:
         self.eps_abs = eps_abs
         self.warm_start = warm_start
         self.pad = pad
+        self.elastic_batch = elastic_batch
         self._qps: dict[tuple[int, int], proxqp.dense.QP] = {}
         self.solves = 0
         self.failures = 0
@@ -40,11 +41,34 @@ class QPWorkspace:
         millimetre of remaining violation costs a tenth of the stiffest term's curvature, more
         than any step inside the trust region can gain (measured on the woodchair carry, where
         dropping the rows instead let the hands 4.8 mm into the seat). Before this, a failed
-        QP was re-solved without its constraint rows."""
+        QP was re-solved without its constraint rows.
+
+        Solved over a working set of rows (constraint generation): the QP takes only the rows of
+        the set, each with its slack; a row left out costs nothing and bends nothing while it
+        holds, so once no row outside the set is violated (by more than ``eps_abs``) the answer
+        is the whole problem's. Otherwise the ``elastic_batch`` most violated rows join the set
+        and it is solved again. Why: the dense slack QP has n + m variables. Restoring a box six
+        times too wide took every penetrating row, m = 1962, and 85 s; with the working set, 11
+        QPs of at most 322 rows gave the same step (to 7 µm) in 3.3 s. At the optimum most rows
+        hold (1804 of those 1962)."""
         n, m = H.shape[0], C.shape[0]
         if m == 0:
             return self._solve(H, g, C, lower, box_lo, box_hi)[0]
         rho = 100.0 * (1.0 + float(np.abs(np.diag(H)).max()))
+        working = np.zeros(m, dtype=bool)
+        x = np.zeros(n)
+        while True:
+            violation = lower - C @ x
+            outside = np.flatnonzero(~working & (violation > self.eps_abs))
+            if outside.size == 0:
+                return x
+            worst = np.argsort(-violation[outside], kind="stable")[:self.elastic_batch]
+            working[outside[worst]] = True
+            x = self._solve_with_slacks(H, g, C[working], lower[working], box_lo, box_hi, rho)
+
+    def _solve_with_slacks(self, H, g, C, lower, box_lo, box_hi, rho: float) -> np.ndarray:
+        """The slack QP of ``_solve_elastic`` over the rows given; its x."""
+        n, m = H.shape[0], C.shape[0]
         H_e = np.zeros((n + m, n + m))
         H_e[:n, :n] = H
         H_e[n:, n:] = rho * np.eye(m)

@@ -151,6 +151,31 @@ def test_a_qp_with_conflicting_rows_still_satisfies_the_rows_it_can():
     assert ws.failures == 1 and np.allclose(ok, [0.0, 0.05], atol=1e-6)
 
 
+
+def test_the_elastic_re_solve_over_a_working_set_of_rows_equals_the_slack_qp_over_all_rows():
+    """300 rows, all violated at 0, that cannot all be met inside the step boxes: 280 push one
+    way and 20 the other (as where a too-big box fills the hands' reach). The working-set
+    re-solve gives the step of the slack QP over every row, through QPs that never take them
+    all, and leaves rows violated (a true elastic step)."""
+    from retarget.qp_workspace import QPWorkspace
+
+    rng = np.random.default_rng(3)
+    n = 8
+    A = rng.normal(size=(n, n))
+    H, g = A @ A.T + np.eye(n), rng.normal(size=n)
+    C = np.vstack([1.0 + 0.3 * rng.normal(size=(280, n)), -1.0 + 0.3 * rng.normal(size=(20, n))])
+    lower = np.concatenate([rng.uniform(0.0, 0.2, 280), rng.uniform(0.2, 0.4, 20)])
+    box_lo, box_hi = np.full(n, -0.2), np.full(n, 0.2)
+    ws = QPWorkspace(eps_abs=1e-9, elastic_batch=16)
+    x = ws.solve(H, g, C, lower, box_lo, box_hi)
+    assert ws.failures == 1
+    assert max(size for size, _ in ws._qps) <= n + 100
+    rho = 100.0 * (1.0 + np.abs(np.diag(H)).max())
+    full = QPWorkspace(eps_abs=1e-9)._solve_with_slacks(H, g, C, lower, box_lo, box_hi, rho)
+    np.testing.assert_allclose(x, full, atol=1e-8)
+    assert (lower - C @ x > 1e-3).sum() > 10
+
+
 def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_cluster_at_its_deepest_point():
     """A flat face pressed into a link away from the object's hull guards (corners, edges): only
     the surface guards see it (OMOMO box ×1.3: a face point 23 mm from the nearest guard went
