@@ -260,8 +260,12 @@ class FeasibilityReport:
         else:
             out["stance_sliding"] = {"median_mps": None, "peak_mps": None, "frames_over": 0}
         phases = self.flight_phases()
+        # A thrown body needs no support: what a flight phase leaves unsupported is the part of its
+        # motion that is not ballistic (a reference that floats through a leap reads near 1).
         out["flight"] = {"phases": len(phases), "durations_s": [(b - a + 1) / self.fps for a, b in phases],
-                         "total_s": float(self.flight.sum() / self.fps)}
+                         "total_s": float(self.flight.sum() / self.fps),
+                         "unsupported_mean_fraction": [float(self.unsupported_fraction[a:b + 1].mean())
+                                                       for a, b in phases]}
         out["flagged_frames"] = int((self.severity() >= 1.0).sum())
         out["hardest"] = [{"frame": h.frame, "time_s": float(t[h.frame]), "severity": h.severity,
                            "run_s": [float(t[h.start]), float(t[h.stop])], "why": h.reasons} for h in self.hardest()]
@@ -519,6 +523,10 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     phases = ", ".join(f"{x:.2f}" for x in fl["durations_s"]) or "none"
     lines.append(f"  {'flight (nothing on the ground)':31s} {fl['phases']} phase(s), {fl['total_s']:.2f} s in total "
                  f"(s: {phases}); other links than the feet on the ground {r.other_support.sum()} frames")
+    if fl["phases"]:
+        airborne = ", ".join(f"{100 * x:.0f}%" for x in fl["unsupported_mean_fraction"])
+        lines.append(f"  {'not ballistic in the air':31s} unsupported force, mean over each flight: {airborne} of "
+                     "weight (a thrown body: 0)")
     hard = r.hardest(worst)
     if not hard:
         lines.append("no frame reaches a limit")

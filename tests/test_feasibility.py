@@ -58,6 +58,8 @@ def test_a_hover_is_a_flight_with_the_whole_weight_unsupported():
     r = check_feasibility(_ref(qpos))
     assert r.flight_phases() == [(0, 39)]
     assert r.summary()["flight"]["durations_s"] == [pytest.approx(40 / FPS)]
+    assert r.summary()["flight"]["unsupported_mean_fraction"] == [pytest.approx(1.0)]
+    assert "not ballistic in the air" in format_report(r) and "100% of weight" in format_report(r)
     # at rest in the air: the base wrench is exactly the weight, and no foot can supply it
     np.testing.assert_allclose(r.unsupported_fraction, 1.0, rtol=1e-9)
     assert r.foot_force_w.max() == 0.0
@@ -73,6 +75,7 @@ def test_a_ballistic_flight_needs_no_support():
     assert r.flight.all()
     # free fall of a rigid pose: the centre of mass accelerates at g, no external force needed
     assert r.unsupported_fraction.max() < 0.01
+    assert r.summary()["flight"]["unsupported_mean_fraction"][0] < 0.01
     assert r.torque_ratio.max() < 0.01
 
 
