@@ -176,6 +176,19 @@ def test_the_elastic_re_solve_over_a_working_set_of_rows_equals_the_slack_qp_ove
     assert (lower - C @ x > 1e-3).sum() > 10
 
 
+
+def test_an_elastic_re_solve_whose_rows_all_hold_still_minimises_the_objective():
+    """A failed QP is not always a conflict (ProxQP may stop at its iteration cap): where every
+    row holds at the origin, the re-solve still takes the step the objective asks for inside the
+    boxes (a first version returned the origin, a null step, and a free-table carry lost its box
+    contacts: recall 0.47)."""
+    from retarget.qp_workspace import QPWorkspace
+
+    H, g = np.eye(2), np.array([-1.0, 0.2])
+    C, lower = np.array([[1.0, 0.0], [0.0, 1.0]]), np.array([-5.0, -5.0])
+    x = QPWorkspace(eps_abs=1e-9)._solve_elastic(H, g, C, lower, np.full(2, -0.5), np.full(2, 0.5))
+    np.testing.assert_allclose(x, [0.5, -0.2], atol=1e-7)
+
 def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_cluster_at_its_deepest_point():
     """A flat face pressed into a link away from the object's hull guards (corners, edges): only
     the surface guards see it (OMOMO box ×1.3: a face point 23 mm from the nearest guard went
