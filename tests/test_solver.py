@@ -151,7 +151,6 @@ def test_a_qp_with_conflicting_rows_still_satisfies_the_rows_it_can():
     assert ws.failures == 1 and np.allclose(ok, [0.0, 0.05], atol=1e-6)
 
 
-
 def test_the_elastic_re_solve_over_a_working_set_of_rows_equals_the_slack_qp_over_all_rows():
     """300 rows, all violated at 0, that cannot all be met inside the step boxes: 280 push one
     way and 20 the other (as where a too-big box fills the hands' reach). The working-set
@@ -174,7 +173,6 @@ def test_the_elastic_re_solve_over_a_working_set_of_rows_equals_the_slack_qp_ove
     full = QPWorkspace(eps_abs=1e-9)._solve_with_slacks(H, g, C, lower, box_lo, box_hi, rho)
     np.testing.assert_allclose(x, full, atol=1e-8)
     assert (lower - C @ x > 1e-3).sum() > 10
-
 
 
 def test_an_elastic_re_solve_whose_rows_all_hold_still_minimises_the_objective():
