@@ -169,8 +169,7 @@ def test_the_elastic_re_solve_over_a_working_set_of_rows_equals_the_slack_qp_ove
     x = ws.solve(H, g, C, lower, box_lo, box_hi)
     assert ws.failures == 1
     assert max(size for size, _ in ws._qps) <= n + 100
-    rho = 100.0 * (1.0 + np.abs(np.diag(H)).max())
-    full = QPWorkspace(eps_abs=1e-9)._solve_with_slacks(H, g, C, lower, box_lo, box_hi, rho)
+    full = QPWorkspace(eps_abs=1e-9)._solve_with_slacks(H, g, C, lower, box_lo, box_hi)
     np.testing.assert_allclose(x, full, atol=1e-8)
     assert (lower - C @ x > 1e-3).sum() > 10
 
@@ -186,6 +185,7 @@ def test_an_elastic_re_solve_whose_rows_all_hold_still_minimises_the_objective()
     C, lower = np.array([[1.0, 0.0], [0.0, 1.0]]), np.array([-5.0, -5.0])
     x = QPWorkspace(eps_abs=1e-9)._solve_elastic(H, g, C, lower, np.full(2, -0.5), np.full(2, 0.5))
     np.testing.assert_allclose(x, [0.5, -0.2], atol=1e-7)
+
 
 def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_cluster_at_its_deepest_point():
     """A flat face pressed into a link away from the object's hull guards (corners, edges): only
