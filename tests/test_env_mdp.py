@@ -144,7 +144,7 @@ def test_without_failures_starts_are_uniform_over_the_clip():
 
 
 def test_failures_concentrate_starts_on_the_failing_bin():
-    cmd = _command([250])
+    cmd = _command([250], adaptive_floor="absolute", adaptive_uniform_ratio=0.1)  # §2's rule
     cmd.frame[:] = 130  # 130 · 6 / 250 → bin 3
     for _ in range(200):
         cmd.record_failures(torch.ones(4096, dtype=torch.bool))

@@ -137,7 +137,8 @@ def test_sampler_bins_follow_injected_failures(floor):
     (the clip first, with ``floor`` of the starts spread evenly over the clips, then the bin)."""
     refs = [standing_reference(duration_s=99 / 50), standing_reference(duration_s=249 / 50)]
     motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
-    cfg = CommandCfg(reset_noise_enabled=False, library_clip_floor=floor)
+    cfg = CommandCfg(reset_noise_enabled=False, library_clip_floor=floor, adaptive_floor="absolute",
+                     adaptive_uniform_ratio=0.1)  # §2's floor, whose arithmetic is written out below
     n = 4000
     cmd = MotionCommand(motion, n, cfg, torch.Generator().manual_seed(0))
     assert cmd.bin_count.tolist() == [3, 6]
@@ -175,13 +176,14 @@ def test_a_clip_that_always_fails_keeps_the_others_sampled():
     """Three clips; five envs fail on clip 0 at every step for 5 000 steps (a clip the policy
     cannot track). With the default floor of 0.5 the other two clips keep at least a third of
     the starts between them; with floor 0 (one distribution over all bins) clip 0 takes over
-    95 %."""
+    95 % (the bins under §2's absolute floor)."""
     refs = [standing_reference(duration_s=99 / 50) for _ in range(3)]
     motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
     shares = {}
     for floor in (0.5, 0.0):
-        cmd = MotionCommand(motion, 300, CommandCfg(reset_noise_enabled=False, library_clip_floor=floor),
-                            torch.Generator().manual_seed(0))
+        cfg = CommandCfg(reset_noise_enabled=False, library_clip_floor=floor, adaptive_floor="absolute",
+                         adaptive_uniform_ratio=0.1)
+        cmd = MotionCommand(motion, 300, cfg, torch.Generator().manual_seed(0))
         failing = (cmd.clip == 0) & (torch.arange(300) < 15)
         for _ in range(5000):
             cmd.record_failures(failing)
