@@ -30,6 +30,7 @@ class SolverState:
     prev_demo: tuple[np.ndarray, np.ndarray] | None = None  # demonstrated object poses at t − 1
     stance: StanceTargets | None = None  # planted-foot targets of t − 1 (their anchors)
     recent_frames: list[tuple[bytes, LinkFrames]] = field(default_factory=list)  # ``frames_at``'s last answers
+    com_data: pin.Data | None = None  # scratch of the COM term (``retarget.flight``), apart from ``data``
 
 
 @dataclass

@@ -221,6 +221,10 @@ class Problem:
     #: evaluation measures it, not only the OT sources' (``targets.unit_gaps``).
     unit_surface: ProbeSet
     unit_of_vertex: np.ndarray
+    #: (T, 3) m, world: the centre-of-mass path of a ballistic second pass (``retarget.flight``),
+    #: held by ``com_weight``·‖com(q) − c*_t‖² (per m²); None in the first pass.
+    com_target: np.ndarray | None = None
+    com_weight: float = 0.0
 
     @cached_property
     def num_surface_units(self) -> int:

@@ -155,9 +155,11 @@ class QPModel:
 
 
 def merit(problem: Problem, state: SolverState, lin: Linearisation) -> tuple[float, float]:
-    """(E = Σ w r² + ‖q ⊖ q_{t−1}‖², L1 penalty on the violations beyond ε_col)."""
+    """(E = Σ w r² + ‖q ⊖ q_{t−1}‖² [+ W‖com − c*‖²], L1 penalty on the violations beyond ε_col)."""
     cfg = problem.solver
     energy = float(np.dot(lin.cost.weight, lin.cost.value ** 2))
+    if lin.com is not None:
+        energy += problem.com_weight * float(lin.com[0] @ lin.com[0])
     if state.prev is not None:
         e = problem.kin.difference(state.prev[0], state.q)
         energy += cfg.previous_frame_weight * float(e @ e)
@@ -190,6 +192,10 @@ def assemble_model(problem: Problem, state: SolverState, model: QPModel, timings
         e = problem.kin.difference(state.prev[0], state.q)  # q ⊖ q_{t−1}
         H[:nv, :nv] += cfg.previous_frame_weight * np.eye(nv)
         g[:nv] += cfg.previous_frame_weight * e
+    if lin.com is not None:  # the ballistic pass's COM term (retarget.flight)
+        r, jc = lin.com
+        H[:nv, :nv] += problem.com_weight * (jc.T @ jc)
+        g[:nv] += problem.com_weight * (jc.T @ r)
     H[np.diag_indices_from(H)] += cfg.damping
     model.jac, model.H, model.g, model.chosen = jac, H, g, chosen
     tm.lap("qp_assembly")

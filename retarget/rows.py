@@ -21,6 +21,7 @@ import numba
 import numpy as np
 
 from otr_gym import robot
+from retarget.flight import com_residual
 from retarget.geometry import (
     PREFETCH_AHEAD,
     ProximityQuery,
@@ -66,6 +67,9 @@ class Linearisation:
     min_self_distance: float
     counts: np.ndarray  # (L + O,) active probes per link and object at this iterate (N_ℓ)
     contact: ContactSelection  # the contact-state rows in use
+    #: com(q) − c*_t (3,) m and its Jacobian (3, nv) when the frame has a COM target
+    #: (``retarget.flight``), else None
+    com: tuple[np.ndarray, np.ndarray] | None = None
 
     @cached_property
     def initial(self) -> np.ndarray:
@@ -739,10 +743,15 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     pos_weight, rot_weight = problem.style_weights
     cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]), np.concatenate([fr.rot[links], state.obj_rot]),
                           targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
+    com = None
+    if targets.com is not None:
+        if state.com_data is None:
+            state.com_data = problem.kin.new_data()
+        com = com_residual(problem.kin.model, state.com_data, state.q, targets.com)
     tm.lap("style_rows")
     return Linearisation(Rows.concat(cost), constraints, surface_channel, margin, fr,
                          total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]),
-                         contact)
+                         contact, com)
 
 
 def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,

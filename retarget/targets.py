@@ -34,6 +34,7 @@ class FrameTargets:
     style_rot: np.ndarray  # (S + O, 3, 3)
     #: planted-foot targets; they depend on the previous frame's solution, so the solver sets them
     stance: StanceTargets = field(default_factory=StanceTargets.empty)
+    com: np.ndarray | None = None  # (3,) m, world: the COM target of a ballistic pass (``retarget.flight``)
 
 
 def near_channel(track: ChannelTrack, x_c: np.ndarray, reach: float) -> np.ndarray:
@@ -142,4 +143,5 @@ def frame_targets(problem: Problem, t: int) -> FrameTargets:
     return FrameTargets(t, tuple(robot_t), tuple(robot_a), tuple(robot_l), tuple(robot_ld), tuple(unit_d),
                         tuple(obj_t), tuple(obj_a),
                         obj_pos, obj_rot, np.concatenate([problem.style.pos_w[t], obj_pos]),
-                        np.concatenate([problem.style.rot_w[t], obj_rot]))
+                        np.concatenate([problem.style.rot_w[t], obj_rot]),
+                        com=None if problem.com_target is None else problem.com_target[t])
