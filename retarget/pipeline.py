@@ -117,7 +117,8 @@ def load_config(path: str | Path | None = None, **overrides) -> RetargetConfig:
 def retarget_demonstration(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     """Retarget one Demonstration to a G1 ``Reference`` (see the module doc for the rate).
 
-    ``progress(t)`` is called after each solved frame. The reference carries the free and fixed
+    ``progress(t)`` is called after each solved frame (of both passes when ``cfg.flight`` solves
+    the clip twice). The reference carries the free and fixed
     objects' tracks (with meshes), per-link contact annotations against every channel, and
     metadata (mode, scale, weights, source, solver statistics). Wall-clock times are not in
     it (``retarget_timed`` returns them), so the same clip always gives the same file.
@@ -174,7 +175,7 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     flight = {"passes": 1}
     if thrown is not None:
         problem, stats = thrown
-        sol = solve_sequence(problem)
+        sol = solve_sequence(problem, progress)
         flight = {"passes": 2, **stats}
     solved = time.perf_counter()
 
@@ -301,6 +302,9 @@ def retarget_bytes(job: Job, task: Task, frame_bar: bool = False) -> tuple[ClipR
             bar = tqdm(total=total, desc=job.source.name, unit="frame", leave=False)
 
             def progress(_t: int) -> None:
+                if bar.n == bar.total:  # the ballistic second pass (retarget.flight) starts over
+                    bar.total += total
+                    bar.set_description(f"{job.source.name} (ballistic pass)")
                 bar.update(1)
         reference, timing = retarget_timed(demo, task.cfg, progress)
         if bar is not None:

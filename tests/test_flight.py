@@ -99,12 +99,18 @@ def _hovering_hop(height: float = 0.15):
 
 @pytest.fixture(scope="module")
 def hop_references():
+    """{flight enabled: (reference, frames reported to ``progress``)} of the hovering hop."""
     demo = _hovering_hop()
-    return {on: retarget_demonstration(demo, RetargetConfig(flight=FlightConfig(enabled=on))) for on in (False, True)}
+    out = {}
+    for on in (False, True):
+        solved = []
+        out[on] = retarget_demonstration(demo, RetargetConfig(flight=FlightConfig(enabled=on)), solved.append), solved
+    return out
 
 
 def test_a_hovering_hop_is_thrown_by_the_second_pass(hop_references):
-    hover, thrown = hop_references[False], hop_references[True]
+    (hover, one), (thrown, two) = hop_references[False], hop_references[True]
+    assert one == list(range(hover.num_frames)) and two == one + one  # progress covers both passes
     assert hover.metadata["flight"] == {"passes": 1}
     assert thrown.metadata["flight"]["passes"] == 2 and thrown.metadata["flight"]["flight_frames"] >= 15
     model = robot.load_pinocchio_model()
@@ -112,7 +118,7 @@ def test_a_hovering_hop_is_thrown_by_the_second_pass(hop_references):
     (a, b), = first.flight_phases()
     inner = np.arange(a + 2, b - 1)  # the flight without its take-off and landing frames
     az = {on: _acceleration(com_path(model, robot.qpos_mujoco_to_pinocchio(r.qpos()))[:, 2])[inner - 1]
-          for on, r in hop_references.items()}
+          for on, (r, _) in hop_references.items()}
     assert abs(np.median(az[False])) < 2.0  # the first pass hovers like the person
     # the second throws (its own first and last flight frames may still be braking)
     assert np.median(az[True]) == pytest.approx(-9.81, abs=0.1) and np.abs(az[True] + 9.81).max() < 1.5
