@@ -12,7 +12,9 @@ support carries the box: frames held, the hands' height above the box centre in 
 (-1 its bottom face, +1 its top; below 0 the box hangs over its hands and tips unless squeezed):
 that of the box point nearest each hand, then that of the hand geoms' centre (below -1: the hand
 is under the box; a hand wrapping the bottom edge reads -1 by its nearest point only), then the
-box centre's height and tilt), optionally a PNG of both errors per frame.
+box centre's height and tilt), then per reference the robot collision geoms that the reference
+itself puts inside the simulated objects (depth, frames; hands marked: their squeeze is the
+grasp, any other link shoves the box), optionally a PNG of both errors per frame.
 
     python benchmarks/grasp_playback.py out/omomo/sub3_largebox_003.npz \\
         ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz \\
@@ -82,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|---|---|---|---|")
     for r in results:
         print(r.row())
+    for r in results:
+        print(r.overlap_line())
     if args.png:
         print(f"wrote {plot(results, args.png)}")
     if args.json:

@@ -2,9 +2,10 @@
 (qpos interpolated between frames, qvel from the reference), only the objects simulated (MuJoCo on
 the CPU, the OTR-G1-BoxTrack-v0 model: fitted hand boxes, grasp-fitted box, nominal mass and
 friction, no randomisation). What a policy that tracks perfectly, squeezing no harder than the
-reference's hands, does to the box, and where the reference holds it (``HeldGrasp``: a box held
-below its centre tips in the hands unless squeezed). ``benchmarks/grasp_playback.py`` is its
-command line.
+reference's hands, does to the box, where the reference holds it (``HeldGrasp``: a box held
+below its centre tips in the hands unless squeezed) and which robot collision geoms the reference
+itself puts inside the simulated box (``GeomOverlap``: a torso or shoulder in there shoves the box
+aside). ``benchmarks/grasp_playback.py`` is its command line.
 
 The robot must also be immovable *within* each step's contact solve: left as the unactuated G1,
 its links fall and swing under gravity during the step, and a hand accelerating away from the box
@@ -16,7 +17,7 @@ against a body driven on the reference, as a perfect tracker's stiff joints woul
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import mujoco
@@ -25,7 +26,7 @@ import torch
 
 from envs.box import make_box_task
 from envs.config import load_box_config
-from envs.mdp.objects import HeldGrasp, held_grasp
+from envs.mdp.objects import GeomOverlap, HeldGrasp, held_grasp, reference_overlaps
 from otr_gym.config import merge
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_apply_inverse, quat_error_angle
@@ -41,6 +42,16 @@ class Playback:
     pos_error_cm: list[float]  # per frame played, moving object 0
     ori_error_deg: list[float]
     grasp: HeldGrasp | None = None  # the reference's hold, None when it never holds a box
+    #: robot collision geoms inside the simulated objects on the reference itself, deepest first
+    overlaps: list[GeomOverlap] = field(default_factory=list)
+
+    def overlap_line(self) -> str:
+        """The overlaps in one line: geom depth (frames), hands marked as the squeeze."""
+        if not self.overlaps:
+            return f"{Path(self.reference).name}: no robot collision geom inside the simulated objects"
+        parts = [f"{o.geom} {1000 * o.deepest_m:.1f} mm ({o.frames} frames){' [hand]' if o.hand else ''}"
+                 for o in self.overlaps]
+        return f"{Path(self.reference).name}: inside the simulated objects on the reference: " + ", ".join(parts)
 
     def row(self) -> str:
         pos, ori = np.asarray(self.pos_error_cm), np.asarray(self.ori_error_deg)
@@ -90,6 +101,7 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
     if motion.num_clips != 1:
         raise ValueError(f"{reference}: one clip at a time ({motion.num_clips} given)")
     grasp = held_grasp(Reference.load(reference), task.scene, task.backend.model, cfg.objects)
+    overlaps = reference_overlaps(Reference.load(reference), task.scene, task.backend.model, cfg.objects)
     last = int(motion.clip_length[0]) - 1
     nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
     model = kinematic_robot(task.backend.model, nv)  # the task is ours alone: changed in place
@@ -114,4 +126,4 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
         if err > termination:
             ended = f
             break
-    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp)
+    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp, overlaps)

@@ -541,6 +541,35 @@ def test_the_played_back_robot_is_immovable_within_a_physics_step(box_reference)
     np.testing.assert_allclose(data.qacc[37], -9.81, atol=1e-3)  # the falling box: gravity alone
 
 
+def test_reference_overlaps_name_a_torso_the_reference_puts_inside_its_box(box_reference_geometry, tmp_path):
+    """The generated clip keeps every robot collision geom out of its box. Moved 15 cm in front of
+    the torso capsule's axis (radius 9 cm; the box's half-width 10 cm) for frames 10-14, the box
+    holds the torso 2-4 cm deep (less whatever the grasp fit narrowed on that axis), and only then."""
+    from envs.kinematic_playback import play
+    from envs.mdp.objects import reference_overlaps
+
+    task = make_box_task(box_reference_geometry, 1, "mujoco", "cpu", evaluation=True)
+    model = task.backend.model
+    assert reference_overlaps(Reference.load(box_reference_geometry), task.scene, model, task.cfg.objects) == []
+
+    data = mujoco.MjData(model)
+    torso = model.geom("torso_collision").id
+    shoved = Reference.load(box_reference_geometry)
+    for t in range(10, 15):
+        data.qpos[:36] = task.motion.qpos(torch.tensor([t]))[0].double().numpy()
+        mujoco.mj_kinematics(model, data)
+        shoved.objects[0].pos_w[t] = data.geom_xpos[torso] + np.array([0.15, 0.0, 0.0])
+        shoved.objects[0].quat_w[t] = [1.0, 0.0, 0.0, 0.0]
+    path = shoved.save(tmp_path / "shoved.npz")
+    found = {o.geom: o for o in reference_overlaps(Reference.load(path), task.scene, model, task.cfg.objects)}
+    assert found["torso_collision"].body == "torso_link" and not found["torso_collision"].hand
+    assert found["torso_collision"].frames == 5 and 0.02 < found["torso_collision"].deepest_m < 0.045
+    assert all(o.frames <= 5 for o in found.values())
+    # the playback reports them (grasp_playback.py prints this line)
+    line = play(path).overlap_line()
+    assert f"torso_collision {1000 * found['torso_collision'].deepest_m:.1f} mm (5 frames)," in line + ","
+
+
 def test_held_grasp_tells_a_box_held_at_its_side_from_one_hung_over_the_hand(box_reference_geometry, tmp_path):
     """The generated clip holds its box beside the left hand, centre at the hand point's height,
     in the air (frames 60-99): the hand is at the box's side, about half-way up. Raised to rest on

@@ -246,11 +246,7 @@ class _Geometry:
         support_d = np.full((T, len(moving), len(supports)), _FAR_M)
         qpos = ref.qpos()
         for t in range(T):
-            d.qpos[:self.robot_nq] = qpos[t]
-            for k, i in enumerate(moving):
-                d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t],
-                                                                                  ref.objects[i].quat_w[t]]
-            mujoco.mj_kinematics(self.model, d)
+            self._pose(ref, qpos[t], moving, t)
             if hands and hand_centres is not None:
                 for h, hand in enumerate(self.hand_geoms):
                     hand_centres[t, h] = d.geom_xpos[hand].mean(axis=0)
@@ -264,6 +260,31 @@ class _Geometry:
                 for s, support in enumerate(supports):
                     support_d[t, k, s] = self._closest(obj, support)[0]
         return hand_d, support_d
+
+    def _pose(self, ref: Reference, qpos: np.ndarray, moving: list[int], t: int) -> None:
+        """The robot at ``qpos`` and the moving objects at frame t of ``ref``, as the reference has them."""
+        d = self.data
+        d.qpos[:self.robot_nq] = qpos
+        for k, i in enumerate(moving):
+            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t], ref.objects[i].quat_w[t]]
+        mujoco.mj_kinematics(self.model, d)
+
+    def overlaps(self, ref: Reference, moving: list[int]) -> dict[int, list[float]]:
+        """Robot collision geom -> its signed distances (m, < 0) at the frames where it is inside
+        a moving object's collision geoms, robot and objects on their reference poses."""
+        objects = [g for i in moving for g in self.object_geoms[ref.objects[i].name]]
+        others = set(objects) | set(self.ground) | {g for gs in self.object_geoms.values() for g in gs}
+        robot = [g for g in range(self.model.ngeom)
+                 if g not in others and self.model.geom_contype[g] | self.model.geom_conaffinity[g]]
+        out: dict[int, list[float]] = {}
+        qpos = ref.qpos()
+        for t in range(ref.num_frames):
+            self._pose(ref, qpos[t], moving, t)
+            for g in robot:
+                depth = min(mujoco.mj_geomDistance(self.model, self.data, g, o, 0.0, self._fromto) for o in objects)
+                if depth < 0.0:
+                    out.setdefault(g, []).append(depth)
+        return out
 
     def _closest(self, geoms_a: list[int], geoms_b: list[int]) -> tuple[float, np.ndarray]:
         """Surface distance between two geom sets as posed (capped at ``_FAR_M``) and the point
@@ -333,6 +354,36 @@ def held_grasp(ref: Reference, objects: SceneObjects, model: mujoco.MjModel, cfg
     tilt = np.degrees(np.arccos(np.clip(np.abs(vertical_b[frames, up]), 0.0, 1.0)))
     return HeldGrasp(len(frames), height(points_w[frames, :, 0]), height(centres_w[frames]),
                      float(centre_w[:, 2].mean()), float(tilt.mean()))
+
+
+@dataclass(frozen=True)
+class GeomOverlap:
+    """A robot collision geom inside a moving object's collision shapes on the reference itself
+    (robot and object on their reference poses): what the simulation pushes apart at once when a
+    policy tracks the reference exactly. Hand geoms (``objects.hand_contact_roots``) are the
+    squeeze a grasp asks for; any other link inside the box shoves it."""
+
+    geom: str
+    body: str
+    hand: bool
+    frames: int  # frames where it is inside
+    deepest_m: float  # its largest depth (positive)
+    median_m: float  # median depth over those frames
+
+
+def reference_overlaps(ref: Reference, objects: SceneObjects, model: mujoco.MjModel,
+                       cfg: ObjectsCfg) -> list[GeomOverlap]:
+    """Every robot collision geom of ``model`` that is inside one of the moving objects'
+    collision geoms at some frame of ``ref`` (``objects`` as built for it), deepest first."""
+    moving = [i for i, o in enumerate(objects.objects) if not o.static]
+    if not moving:
+        return []
+    geometry = _Geometry(model, objects, cfg)
+    hands = {g for hand in geometry.hand_geoms for g in hand}
+    out = [GeomOverlap(model.geom(g).name, model.body(model.geom_bodyid[g]).name, g in hands, len(d),
+                       float(-min(d)), float(-np.median(d)))
+           for g, d in geometry.overlaps(ref, moving).items()]
+    return sorted(out, key=lambda o: -o.deepest_m)
 
 
 def _vertical_in_box(box_quat_w: np.ndarray) -> np.ndarray:
