@@ -444,7 +444,7 @@ def demonstrated_feet(demo: Demonstration, part_pos_w: np.ndarray, part_rot_w: n
                                 + part_pos_w[:, k, None] for k in ks], axis=1) for ks in parts]
     stance, sweep = demonstrated_stance(np.stack([v[..., 2].min(axis=1) for v in vertices], axis=1),
                                         np.stack([least_moving_speed(v, demo.fps) for v in vertices], axis=1),
-                                        least_moving_speed(part_pos_w[:, :1], demo.fps), cfg)
+                                        least_moving_speed(part_pos_w[:, :1], demo.fps), cfg, demo.fps)
     boxes = np.stack([[s[:, :2].min(axis=0), s[:, :2].max(axis=0)] for s in soles])
     ankles, toes = part_pos_w[:, [ks[0] for ks in parts]], part_pos_w[:, [ks[1] for ks in parts]]
     turns = demonstrated_turns(ankles, part_rot_w[:, [ks[0] for ks in parts]], toes, vertices, stance, boxes,

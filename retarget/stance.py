@@ -67,6 +67,12 @@ class StanceConfig:
     #: 1 m/s floor keeps the AMASS jog's slow-pelvis steps planted (0.3 m/s: ground J 98 → 92 %).
     sweep_ratio: float = 1.0
     sweep_floor_m_s: float = 1.0
+    #: A break in a foot's stance shorter than this (s) is a flicker of the two tests above, not
+    #: a step (no foot lifts and lands in 60 ms), and is closed. Left open, it releases the
+    #: planted foot for a frame or two and plants it again wherever it went: on the AMASS jog the
+    #: left foot flickered off for 2 frames (31-32 at 50 fps) before its push-off, jumped 5 cm out
+    #: and was re-planted 4 cm from where it stood. 0 keeps every break.
+    min_lift_s: float = 0.0
     #: A sweeping foot's sole is held this high above the floor, free horizontally
     #: (``stance_targets``). 0 holds it on the floor, where the G1 would drag it: the AMASS jog's
     #: swing feet skim at 2.6-3.1 m/s, `retarget.verify`'s hardest frames. Below ``contact_m``
@@ -121,14 +127,29 @@ class StanceTargets:
 
 
 def demonstrated_stance(foot_lowest_z: np.ndarray, foot_speed: np.ndarray, pelvis_speed: np.ndarray,
-                        cfg: StanceConfig) -> tuple[np.ndarray, np.ndarray]:
+                        cfg: StanceConfig, fps: float = 50.0) -> tuple[np.ndarray, np.ndarray]:
     """(stance, sweep) flags (T, F) from the person's foot units' lowest surface heights (T, F)
     (m), the horizontal speeds of their least-moving surface points (T, F) and of the pelvis
-    (T,) (m/s): a foot near the floor stands, unless it sweeps past the body
-    (``StanceConfig.sweep_ratio``)."""
+    (T,) (m/s) at ``fps``: a foot near the floor stands, unless it sweeps past the body
+    (``StanceConfig.sweep_ratio``); breaks in a stance shorter than ``min_lift_s`` are closed."""
     near = np.maximum(foot_lowest_z, 0.0) < cfg.contact_m
     fast = foot_speed > np.maximum(cfg.sweep_ratio * pelvis_speed, cfg.sweep_floor_m_s)[:, None]
-    return near & ~fast, near & fast
+    stance = close_short_gaps(near & ~fast, int(np.ceil(cfg.min_lift_s * fps - 1e-9)) - 1)
+    return stance, near & fast & ~stance
+
+
+def close_short_gaps(flags: np.ndarray, max_gap: int) -> np.ndarray:
+    """``flags`` (T, F) with every run of False of at most ``max_gap`` frames between two True
+    frames of the same column set True (a copy)."""
+    out = np.array(flags, dtype=bool, copy=True)
+    if max_gap < 1:
+        return out
+    for f in range(out.shape[1]):
+        on = np.flatnonzero(out[:, f])
+        for a, b in zip(on[:-1], on[1:]):
+            if 1 < b - a <= max_gap + 1:
+                out[a + 1:b, f] = True
+    return out
 
 
 def sole_points(hull_points: np.ndarray, band_m: float) -> np.ndarray:

@@ -83,6 +83,28 @@ def _open_box(size=(0.3, 0.25, 0.2)) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(box.vertices), np.asarray(box.faces[~top])
 
 
+def test_a_stance_break_shorter_than_min_lift_is_closed_and_a_step_is_kept():
+    """At 50 fps with ``min_lift_s`` 0.07, a foot flagged fast for 3 frames (60 ms) between two
+    stances stands through them (and no longer sweeps there); 4 frames (80 ms) stay a break, as
+    does a break at the clip's start. 0, the default, keeps every break."""
+    from retarget.stance import StanceConfig, close_short_gaps, demonstrated_stance
+
+    T = 30
+    low = np.full((T, 2), 0.005)
+    foot_speed = np.full((T, 2), 0.1)
+    foot_speed[0:2, 0] = foot_speed[10:13, 0] = 2.0  # left: a break at the start, then 3 frames
+    foot_speed[20:24, 1] = 2.0  # right: 4 frames
+    pelvis = np.full(T, 0.5)
+    stance, sweep = demonstrated_stance(low, foot_speed, pelvis, StanceConfig(min_lift_s=0.07), fps=50.0)
+    assert stance[2:, 0].all() and not stance[:2, 0].any() and not sweep[10:13, 0].any()
+    assert not stance[20:24, 1].any() and sweep[20:24, 1].all() and stance[:20, 1].all() and stance[24:, 1].all()
+    default, _ = demonstrated_stance(low, foot_speed, pelvis, StanceConfig(), fps=50.0)
+    assert not default[10:13, 0].any()
+    flags = np.array([[1, 0, 1, 0, 0, 1, 0, 0, 0, 1]], bool).T
+    assert close_short_gaps(flags, 2)[:, 0].tolist() == [True] * 6 + [False] * 3 + [True]
+    np.testing.assert_array_equal(close_short_gaps(flags, 0), flags)
+
+
 def test_a_foot_near_the_floor_stands_unless_it_sweeps_past_the_body():
     """Stance needs the foot within 2 cm of the floor and no faster than the pelvis (or 1 m/s);
     a foot skimming the floor faster than that sweeps: held on the floor, free horizontally."""
