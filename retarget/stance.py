@@ -70,8 +70,10 @@ class StanceConfig:
     #: A break in a foot's stance shorter than this (s) is a flicker of the two tests above, not
     #: a step (no foot lifts and lands in 60 ms), and is closed. Left open, it releases the
     #: planted foot for a frame or two and plants it again wherever it went: on the AMASS jog the
-    #: left foot flickered off for 2 frames (31-32 at 50 fps) before its push-off, jumped 5 cm out
-    #: and was re-planted 4 cm from where it stood. 0 keeps every break.
+    #: left foot's lowest point rose to 2.8 and 2.2 cm (frames 31-32 at 50 fps) and came back
+    #: before its push-off; the G1 foot jumped 5 cm out and was re-planted 4 cm from where it
+    #: stood. 0 keeps every break (the default: closing them on the AMASS squat made its hands
+    #: jump more, 41 -> 60 frames over 3 cm).
     min_lift_s: float = 0.0
     #: A sweeping foot's sole is held this high above the floor, free horizontally
     #: (``stance_targets``). 0 holds it on the floor, where the G1 would drag it: the AMASS jog's
