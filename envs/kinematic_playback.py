@@ -93,15 +93,16 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
     """Play one reference; ``object_meshes`` (name -> mesh file) for the reference's objects that
     embed no mesh, names the reference does not have are ignored; ``env_overrides`` change the
     box config (nested keys of configs/env/box.yaml, e.g. {"objects": {"grasp_fit": False}})."""
-    names = {t.name for t in Reference.load(reference).objects}
+    ref = Reference.load(reference)
+    names = {t.name for t in ref.objects}
     meshes = {"objects": {"overrides": {n: {"mesh": m} for n, m in (object_meshes or {}).items() if n in names}}}
     cfg = load_box_config(None, merge(env_overrides or {}, meshes))
     task = make_box_task(reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True, autoreset=False)
     motion, objects = task.motion, task.objects
     if motion.num_clips != 1:
         raise ValueError(f"{reference}: one clip at a time ({motion.num_clips} given)")
-    grasp = held_grasp(Reference.load(reference), task.scene, task.backend.model, cfg.objects)
-    overlaps = reference_overlaps(Reference.load(reference), task.scene, task.backend.model, cfg.objects)
+    grasp = held_grasp(ref, task.scene, task.backend.model, cfg.objects)
+    overlaps = reference_overlaps(ref, task.scene, task.backend.model, cfg.objects)
     last = int(motion.clip_length[0]) - 1
     nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
     model = kinematic_robot(task.backend.model, nv)  # the task is ours alone: changed in place
