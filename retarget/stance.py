@@ -72,9 +72,14 @@ class StanceConfig:
     #: planted foot for a frame or two and plants it again wherever it went: on the AMASS jog the
     #: left foot's lowest point rose to 2.8 and 2.2 cm (frames 31-32 at 50 fps) and came back
     #: before its push-off; the G1 foot jumped 5 cm out and was re-planted 4 cm from where it
-    #: stood. 0 keeps every break (the default: closing them on the AMASS squat made its hands
-    #: jump more, 41 -> 60 frames over 3 cm).
+    #: stood; closed (0.07), its ankle stays on its path (<= 1.2 cm off) and its lift-off jump
+    #: falls 7.7 -> 4.9 cm. 0 keeps every break (the default; not yet trained on).
     min_lift_s: float = 0.0
+    #: ... and only a break through which the foot's least-moving point stays slower than this
+    #: (m/s): a still foot whose lowest point flickers over ``contact_m``, not one that shuffles
+    #: (the AMASS squat's breaks include feet moving at 0.5-1.35 m/s; closing those too made its
+    #: hands jump more, 41 -> 60 frames over 3 cm, where the still ones alone give 42).
+    flicker_speed_m_s: float = 0.2
     #: A sweeping foot's sole is held this high above the floor, free horizontally
     #: (``stance_targets``). 0 holds it on the floor, where the G1 would drag it: the AMASS jog's
     #: swing feet skim at 2.6-3.1 m/s, `retarget.verify`'s hardest frames. Below ``contact_m``
@@ -136,20 +141,22 @@ def demonstrated_stance(foot_lowest_z: np.ndarray, foot_speed: np.ndarray, pelvi
     (``StanceConfig.sweep_ratio``); breaks in a stance shorter than ``min_lift_s`` are closed."""
     near = np.maximum(foot_lowest_z, 0.0) < cfg.contact_m
     fast = foot_speed > np.maximum(cfg.sweep_ratio * pelvis_speed, cfg.sweep_floor_m_s)[:, None]
-    stance = close_short_gaps(near & ~fast, int(np.ceil(cfg.min_lift_s * fps - 1e-9)) - 1)
+    stance = close_short_gaps(near & ~fast, int(np.ceil(cfg.min_lift_s * fps - 1e-9)) - 1,
+                              foot_speed <= cfg.flicker_speed_m_s)
     return stance, near & fast & ~stance
 
 
-def close_short_gaps(flags: np.ndarray, max_gap: int) -> np.ndarray:
+def close_short_gaps(flags: np.ndarray, max_gap: int, closable: np.ndarray | None = None) -> np.ndarray:
     """``flags`` (T, F) with every run of False of at most ``max_gap`` frames between two True
-    frames of the same column set True (a copy)."""
+    frames of the same column set True (a copy); with ``closable`` (T, F), only runs whose every
+    frame is closable."""
     out = np.array(flags, dtype=bool, copy=True)
     if max_gap < 1:
         return out
     for f in range(out.shape[1]):
         on = np.flatnonzero(out[:, f])
         for a, b in zip(on[:-1], on[1:]):
-            if 1 < b - a <= max_gap + 1:
+            if 1 < b - a <= max_gap + 1 and (closable is None or closable[a + 1:b, f].all()):
                 out[a + 1:b, f] = True
     return out
 

@@ -84,25 +84,33 @@ def _open_box(size=(0.3, 0.25, 0.2)) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_a_stance_break_shorter_than_min_lift_is_closed_and_a_step_is_kept():
-    """At 50 fps with ``min_lift_s`` 0.07, a foot flagged fast for 3 frames (60 ms) between two
-    stances stands through them (and no longer sweeps there); 4 frames (80 ms) stay a break, as
-    does a break at the clip's start. 0, the default, keeps every break."""
+    """At 50 fps with ``min_lift_s`` 0.07, a still foot whose lowest point flickers over the
+    contact height for 3 frames (60 ms) between two stances stands through them; 4 frames (80 ms)
+    stay a break, as do a break at the clip's start and a 3-frame break of a foot that slides
+    (faster than ``flicker_speed_m_s``). 0, the default, keeps every break."""
     from retarget.stance import StanceConfig, close_short_gaps, demonstrated_stance
 
     T = 30
     low = np.full((T, 2), 0.005)
     foot_speed = np.full((T, 2), 0.1)
-    foot_speed[0:2, 0] = foot_speed[10:13, 0] = 2.0  # left: a break at the start, then 3 frames
-    foot_speed[20:24, 1] = 2.0  # right: 4 frames
+    low[0:2, 0] = low[10:13, 0] = 0.025  # left, still: a break at the start, then 3 frames
+    low[20:24, 1] = 0.025  # right, still: 4 frames
+    low[5:8, 1] = 0.025  # right: 3 frames, sliding at 0.6 m/s
+    foot_speed[5:8, 1] = 0.6
     pelvis = np.full(T, 0.5)
     stance, sweep = demonstrated_stance(low, foot_speed, pelvis, StanceConfig(min_lift_s=0.07), fps=50.0)
-    assert stance[2:, 0].all() and not stance[:2, 0].any() and not sweep[10:13, 0].any()
-    assert not stance[20:24, 1].any() and sweep[20:24, 1].all() and stance[:20, 1].all() and stance[24:, 1].all()
+    assert stance[2:, 0].all() and not stance[:2, 0].any()
+    assert not stance[20:24, 1].any() and stance[8:20, 1].all() and stance[24:, 1].all()
+    assert not stance[5:8, 1].any() and not sweep.any()
     default, _ = demonstrated_stance(low, foot_speed, pelvis, StanceConfig(), fps=50.0)
     assert not default[10:13, 0].any()
     flags = np.array([[1, 0, 1, 0, 0, 1, 0, 0, 0, 1]], bool).T
     assert close_short_gaps(flags, 2)[:, 0].tolist() == [True] * 6 + [False] * 3 + [True]
     np.testing.assert_array_equal(close_short_gaps(flags, 0), flags)
+    closable = np.ones_like(flags)
+    closable[3] = False
+    assert close_short_gaps(flags, 2, closable)[:, 0].tolist() == [True, True, True, False, False, True,
+                                                                  False, False, False, True]
 
 
 def test_a_foot_near_the_floor_stands_unless_it_sweeps_past_the_body():
