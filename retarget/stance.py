@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from otr_gym.flags import close_short_gaps
 from retarget.kinematics import LinkFrames
 from retarget.residuals import FIXED, Rows, _twist_half
 
@@ -144,21 +145,6 @@ def demonstrated_stance(foot_lowest_z: np.ndarray, foot_speed: np.ndarray, pelvi
     stance = close_short_gaps(near & ~fast, int(np.ceil(cfg.min_lift_s * fps - 1e-9)) - 1,
                               foot_speed <= cfg.flicker_speed_m_s)
     return stance, near & fast & ~stance
-
-
-def close_short_gaps(flags: np.ndarray, max_gap: int, closable: np.ndarray | None = None) -> np.ndarray:
-    """``flags`` (T, F) with every run of False of at most ``max_gap`` frames between two True
-    frames of the same column set True (a copy); with ``closable`` (T, F), only runs whose every
-    frame is closable."""
-    out = np.array(flags, dtype=bool, copy=True)
-    if max_gap < 1:
-        return out
-    for f in range(out.shape[1]):
-        on = np.flatnonzero(out[:, f])
-        for a, b in zip(on[:-1], on[1:]):
-            if 1 < b - a <= max_gap + 1 and (closable is None or closable[a + 1:b, f].all()):
-                out[a + 1:b, f] = True
-    return out
 
 
 def sole_points(hull_points: np.ndarray, band_m: float) -> np.ndarray:

@@ -88,7 +88,8 @@ def test_a_stance_break_shorter_than_min_lift_is_closed_and_a_step_is_kept():
     contact height for 3 frames (60 ms) between two stances stands through them; 4 frames (80 ms)
     stay a break, as do a break at the clip's start and a 3-frame break of a foot that slides
     (faster than ``flicker_speed_m_s``). 0, the default, keeps every break."""
-    from retarget.stance import StanceConfig, close_short_gaps, demonstrated_stance
+    from otr_gym.flags import close_short_gaps
+    from retarget.stance import StanceConfig, demonstrated_stance
 
     T = 30
     low = np.full((T, 2), 0.005)

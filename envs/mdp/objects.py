@@ -39,6 +39,7 @@ from scipy.ndimage import uniform_filter1d
 from envs.collision import BoxShape
 from envs.config import ObjectsCfg
 from envs.objects import GROUND_GEOM, SceneObjects
+from otr_gym.flags import close_short_gaps
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_mul
 
@@ -183,18 +184,8 @@ def _hand_points_in_object(ref: Reference, moving: list[int], cfg: ObjectsCfg) -
 def proximity_gate(distance_m: np.ndarray, threshold_m: float, fps: float, ramp_s: float,
                    min_gap_s: float) -> np.ndarray:
     """(T,) gate in [0, 1] of a (T,) distance series (see the module docstring)."""
-    inside = np.asarray(distance_m) < threshold_m
-    gap = int(round(min_gap_s * fps))
-    if gap > 0 and inside.any():
-        first, last = np.flatnonzero(inside)[[0, -1]]
-        run = 0
-        for t in range(first, last + 1):  # close interior gaps shorter than ``gap`` frames
-            if inside[t]:
-                if 0 < run < gap:
-                    inside[t - run:t] = True
-                run = 0
-            else:
-                run += 1
+    # interior gaps shorter than round(min_gap_s · fps) frames are closed
+    inside = close_short_gaps(np.asarray(distance_m) < threshold_m, int(round(min_gap_s * fps)) - 1)
     ramp = max(int(round(ramp_s * fps)), 1)
     gate = np.zeros(inside.shape)
     k = 0
@@ -273,7 +264,7 @@ class _Geometry:
         """Robot collision geom -> its signed distances (m, < 0) at the frames where it is inside
         a moving object's collision geoms, robot and objects on their reference poses."""
         objects = [g for i in moving for g in self.object_geoms[ref.objects[i].name]]
-        others = set(objects) | set(self.ground) | {g for gs in self.object_geoms.values() for g in gs}
+        others = set(self.ground) | {g for gs in self.object_geoms.values() for g in gs}
         robot = [g for g in range(self.model.ngeom)
                  if g not in others and self.model.geom_contype[g] | self.model.geom_conaffinity[g]]
         out: dict[int, list[float]] = {}
