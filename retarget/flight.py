@@ -33,9 +33,10 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
-import pinocchio as pin
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
+
+from retarget.centre_of_mass import com_path
 
 if TYPE_CHECKING:
     from retarget.problem import Problem
@@ -116,19 +117,6 @@ def ballistic_com(com: np.ndarray, flight: np.ndarray, fps: float, cfg: FlightCo
                         w_air * np.broadcast_to(GRAVITY_M_S2 * dt * dt, (len(airborne), 3))])
     normal = (A.T @ A).tocsc()
     return np.column_stack([spsolve(normal, A.T @ b[:, k]) for k in range(3)])
-
-
-def com_path(model: pin.Model, q: np.ndarray) -> np.ndarray:
-    """(T, 3) m, world: the centre of mass of Pinocchio configurations ``q`` (T, nq)."""
-    data = model.createData()
-    return np.array([pin.centerOfMass(model, data, qt).copy() for qt in q])
-
-
-def com_residual(model: pin.Model, data: pin.Data, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(com(q) − target (3,) m, its Jacobian (3, nv) on Pinocchio's tangent: base twist in the
-    base frame, then joints), the solver's own retraction ``pin.integrate``."""
-    jac = pin.jacobianCenterOfMass(model, data, q)
-    return data.com[0] - target, jac
 
 
 def ballistic_problem(problem: Problem, solution: Solution, cfg: FlightConfig) -> tuple[Problem, dict] | None:

@@ -21,7 +21,7 @@ import numba
 import numpy as np
 
 from otr_gym import robot
-from retarget.flight import com_residual
+from retarget.centre_of_mass import com_residual
 from retarget.geometry import (
     PREFETCH_AHEAD,
     ProximityQuery,

@@ -12,8 +12,9 @@ import pytest
 from clips import clip
 
 from otr_gym import robot
+from retarget.centre_of_mass import com_path, com_residual
 from retarget.feasibility import check_feasibility
-from retarget.flight import GRAVITY_M_S2, FlightConfig, ballistic_com, com_path, com_residual, supported_frames
+from retarget.flight import GRAVITY_M_S2, FlightConfig, ballistic_com, supported_frames
 from retarget.pipeline import RetargetConfig, retarget_demonstration
 
 FPS = 50.0
