@@ -6,7 +6,8 @@ Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
 - env i plays clip i mod C from frame 0, without domain randomisation, observation or reset
   noise (the env's ``evaluation`` mode), and the episode ends with the clip, not a time-out;
 - the policy's deterministic mean action;
-- success: the clip reached its last frame without a tracking termination;
+- success: the clip reached its last frame without a tracking termination; per clip and
+  overall, how many episodes each termination ended (``ended_by``; several may fire at once);
 - MPJPE: root-relative over the 14 tracked bodies, every step an env is alive, including the
   step it terminates on; per clip and overall (frame-weighted), in mm; beside it, as a
   diagnostic, the same with the reference turned by the anchors' yaw difference
@@ -97,7 +98,7 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
         if objects is not None:
             objects.add_frame(vec.tracking_state, alive)
             objects.end_step(vec.tracking_state, alive & truncated & ~terminated)
-        acc.end_step(terminated, truncated)
+        acc.end_step(terminated, truncated, info["terminations"])
         if acc.all_finished:
             break
     return summarize(acc.per_env(), clip_ids, clip_labels(list(vec.motion.names)), objects)
@@ -129,6 +130,8 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         if result.get("object_pos_error_cm") is not None:
             line += (f"  object {result['object_pos_error_cm']:5.1f} cm (p95 {result['object_pos_error_p95_cm']:5.1f}), "
                      f"{result['object_ori_error_deg']:5.1f} deg")
+        if result.get("ended_by"):
+            line += "  ended by " + ", ".join(f"{name} {n}" for name, n in result["ended_by"].items())
         print(f"{line}  ({result['envs']} envs, {result['frames']} frames)")
         if len(result["clips"]) > 1:
             print(format_clip_table(result["clips"]))
@@ -149,7 +152,8 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
 
 
 def format_clip_table(clips: list[dict]) -> str:
-    """One line per clip: success, MPJPE, envs, frames (and the object error for the box task)."""
+    """One line per clip: success, MPJPE, envs, frames (and the object error for the box task),
+    then the terminations that ended its episodes."""
     width = max(len(c["clip"]) for c in clips)
     lines = [f"    {'clip':<{width}}  success    MPJPE (mm)  envs  frames"]
     for c in clips:
@@ -157,6 +161,8 @@ def format_clip_table(clips: list[dict]) -> str:
                 f"{c['envs']:>5} {c['frames']:>7}")
         if c.get("object_pos_error_cm") is not None:
             line += f"  object {c['object_pos_error_cm']:.1f} cm"
+        if c.get("ended_by"):
+            line += "  ended by " + ", ".join(f"{name} {n}" for name, n in c["ended_by"].items())
         lines.append(line)
     return "\n".join(lines)
 

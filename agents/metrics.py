@@ -24,7 +24,8 @@ M_TO_MM = 1000.0
 @dataclass
 class EpisodeAccumulator:
     """Per-env sums over one evaluation episode: MPJPE over the frames an env was alive,
-    and whether its episode ended by a tracking termination."""
+    whether its episode ended by a tracking termination, and which terminations fired on that
+    step (``ended_by``: termination name -> (N,) bool; several may fire at once)."""
 
     num_envs: int
     device: torch.device | str = "cpu"
@@ -33,6 +34,7 @@ class EpisodeAccumulator:
     frames: torch.Tensor = field(init=False)
     terminated: torch.Tensor = field(init=False)
     finished: torch.Tensor = field(init=False)
+    ended_by: dict[str, torch.Tensor] = field(init=False)
 
     def __post_init__(self) -> None:
         self.mpjpe_sum_m = torch.zeros(self.num_envs, dtype=torch.float64, device=self.device)
@@ -40,6 +42,7 @@ class EpisodeAccumulator:
         self.frames = torch.zeros(self.num_envs, dtype=torch.long, device=self.device)
         self.terminated = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
         self.finished = torch.zeros(self.num_envs, dtype=torch.bool, device=self.device)
+        self.ended_by = {}
 
     def add_frame(self, mpjpe_m: torch.Tensor, valid: torch.Tensor | None = None,
                   heading_aligned_m: torch.Tensor | None = None) -> None:
@@ -52,9 +55,14 @@ class EpisodeAccumulator:
             self.aligned_sum_m += torch.where(alive, heading_aligned_m.to(torch.float64), 0.0)
         self.frames += alive.long()
 
-    def end_step(self, terminated: torch.Tensor, truncated: torch.Tensor) -> None:
-        """Record the episode ends of this step (only the first end of each env counts)."""
+    def end_step(self, terminated: torch.Tensor, truncated: torch.Tensor,
+                 fired: dict[str, torch.Tensor] | None = None) -> None:
+        """Record the episode ends of this step (only the first end of each env counts);
+        ``fired``: the env's terminations of this step by name (``info["terminations"]``)."""
         alive = ~self.finished
+        for name, flag in (fired or {}).items():
+            ended = self.ended_by.setdefault(name, torch.zeros_like(self.finished))
+            ended |= alive & flag.bool()
         self.terminated |= alive & terminated.bool()
         self.finished |= alive & (terminated.bool() | truncated.bool())
 
@@ -64,12 +72,15 @@ class EpisodeAccumulator:
 
     def per_env(self) -> dict[str, np.ndarray]:
         """success (clip completed without termination), mean MPJPE (mm) and its heading-aligned
-        diagnostic (mm; 0 if never given), frames evaluated."""
+        diagnostic (mm; 0 if never given), frames evaluated, and per termination name whether it
+        ended the env's episode (``ended_by``)."""
         frames = self.frames.cpu().numpy()
         mpjpe = self.mpjpe_sum_m.cpu().numpy() / np.maximum(frames, 1) * M_TO_MM
         aligned = self.aligned_sum_m.cpu().numpy() / np.maximum(frames, 1) * M_TO_MM
         success = (self.finished & ~self.terminated).cpu().numpy()
-        return {"success": success, "mpjpe_mm": mpjpe, "mpjpe_heading_aligned_mm": aligned, "frames": frames}
+        ended_by = {name: flag.cpu().numpy() for name, flag in self.ended_by.items()}
+        return {"success": success, "mpjpe_mm": mpjpe, "mpjpe_heading_aligned_mm": aligned, "frames": frames,
+                "ended_by": ended_by}
 
 
 def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: list[str],
@@ -85,6 +96,10 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
         frames = per_env["frames"][sel]
         return {key: float((per_env[key][sel] * frames).sum() / max(frames.sum(), 1))}
 
+    def ended_by(sel) -> dict:  # how many envs each termination ended (those that fired at all)
+        counts = {name: int(flag[sel].sum()) for name, flag in per_env.get("ended_by", {}).items()}
+        return {"ended_by": {name: n for name, n in counts.items() if n}}
+
     clips = []
     for c, name in enumerate(clip_names):
         sel = clip_ids == c
@@ -98,6 +113,7 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
             "mpjpe_mm": float((per_env["mpjpe_mm"][sel] * frames).sum() / max(frames.sum(), 1)),
             **weighted("mpjpe_heading_aligned_mm", sel),
             "frames": int(frames.sum()),
+            **ended_by(sel),
             **(objects.summary(sel) if objects is not None else {}),
         })
     frames = per_env["frames"]
@@ -107,6 +123,7 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
         **weighted("mpjpe_heading_aligned_mm", slice(None)),
         "frames": int(frames.sum()),
         "envs": int(frames.size),
+        **ended_by(slice(None)),
         **(objects.summary() if objects is not None else {}),
         "clips": clips,
     }

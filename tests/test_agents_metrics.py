@@ -56,3 +56,27 @@ def test_heading_aligned_diagnostic_is_accumulated_and_frame_weighted_beside_mpj
     assert summary["mpjpe_heading_aligned_mm"] == pytest.approx(30.0)
     assert summary["clips"][0]["mpjpe_heading_aligned_mm"] == pytest.approx(30.0)
     assert summary["mpjpe_mm"] == pytest.approx(40.0)
+
+
+def test_the_terminations_that_end_each_episode_are_counted_per_clip():
+    acc = EpisodeAccumulator(4)
+    no = torch.zeros(4, dtype=torch.bool)
+    acc.add_frame(torch.full((4,), 0.01))
+    fired = {"anchor_height": torch.tensor([True, False, False, False]),
+             "ee_height": torch.tensor([True, True, False, False])}
+    acc.end_step(terminated=torch.tensor([True, True, False, False]), truncated=no, fired=fired)
+    acc.add_frame(torch.full((4,), 0.01))
+    # envs 0 and 1 already ended: their later terminations must not count; env 2 completes the clip
+    later = {"anchor_height": torch.tensor([True, True, False, True]),
+             "ee_height": torch.tensor([True, True, False, True])}
+    acc.end_step(terminated=torch.tensor([True, True, False, True]), truncated=torch.tensor([False, False, True, False]),
+                 fired=later)
+    out = acc.per_env()
+    assert out["ended_by"]["anchor_height"].tolist() == [True, False, False, True]
+    assert out["ended_by"]["ee_height"].tolist() == [True, True, False, True]
+    summary = summarize(out, clip_ids=np.array([0, 0, 1, 1]), clip_names=["jog", "squat"])
+    jog, squat = summary["clips"]
+    assert jog["ended_by"] == {"anchor_height": 1, "ee_height": 2}
+    assert squat["ended_by"] == {"anchor_height": 1, "ee_height": 1}
+    assert summary["ended_by"] == {"anchor_height": 2, "ee_height": 3}
+    assert out["success"].tolist() == [False, False, True, False]
