@@ -29,10 +29,10 @@ As in inverse-dynamics practice on motion capture (Winter's 6 Hz), the twists ar
 first (zero-phase Butterworth, ``lowpass_hz``) for accelerations and torques: differencing twice
 turns a retargeter's millimetre frame-to-frame jitter into accelerations of several g that the
 PD loop never follows (a 1 mm wobble at 50 fps is 0.5 g). Speeds, jumps (pelvis and limbs) and sliding use the raw
-motion. τ_rnea = RNEA(q, v, a) = M a + h includes the armature. The floor can only push: each sole
+motion. τ_rnea = RNEA(q, v, a) = M a + h includes the armature. The ground can only push: each sole
 point (the corners of the G1 foot capsules, ``otr_gym.robot_geometry``; for every other link the
-lowest point of its collision capsules' end spheres) within ``contact_height_m`` of z = 0
-carries a force in the linearised friction cone (4 edges,
+point of its collision capsules' end spheres nearest the ground) within ``contact_height_m`` of
+the ground carries a force in the linearised friction cone (4 edges,
 coefficient μ), f = E λ, λ ≥ 0. The contact forces are the non-negative least-squares fit of
 the base rows, min ‖W(τ_rnea[:6] − (Jᵀ E λ)[:6])‖² + ε‖λ‖² (W weighs moments by 1/L to make
 them forces), so they supply as much of the base wrench as physics allows and never pull.
@@ -41,8 +41,12 @@ What they cannot supply is the *unsupported* wrench; the joint torques are
 "hand of god", flagged separately). This is the standard contact-consistent inverse dynamics
 of a floating base; plain RNEA would hold the pelvis instead and hide the stance-leg torques.
 
-The floor is the plane z = 0: a reference on terrain (Holosoma's crawl up a slope) shows up as
-flight where it leaves the plane.
+The ground is the floor z = 0 (``retarget.ground``), and with ``ground=Ground.from_mesh(FILE)``
+(``python -m retarget.verify --terrain FILE``) also a terrain mesh on it: support points then
+stand on the highest upward face beneath them, "within ``contact_height_m``" is measured along
+that face's normal and the friction cone is built about it. Without the terrain, a reference
+recorded on one (Holosoma's crawl up a slope onto a platform) shows up as flight wherever it
+leaves the plane.
 
 Severity of a frame = the largest ratio of a measure to its limit (flight counts as 1).
 ``FeasibilityReport.intervals`` are the runs of frames at severity ≥ 1; ``hardest`` picks the
@@ -62,6 +66,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.robot_geometry import collision_capsules, posed_vertices, visual_meshes
 from retarget.evaluation.feet import least_moving_speed
+from retarget.ground import Ground
 
 GRAVITY = 9.81
 FOOT_NAMES = ("left", "right")
@@ -72,8 +77,8 @@ LIMB_NAMES = ("left foot", "right foot", "left hand", "right hand")
 @dataclass(frozen=True)
 class FeasibilityCfg:
     fps: float = 50.0  # analyse at the tracking rate (RL_SPEC §2: references resampled to 50 fps)
-    #: A sole point (or, for stance, the foot mesh's lowest vertex) within this height (m) of the
-    #: floor z = 0 is on the ground.
+    #: A sole point (or, for stance, the foot mesh's lowest vertex) within this distance (m) of
+    #: the ground (the floor z = 0, or a terrain face along its normal) is on the ground.
     contact_height_m: float = 0.02
     #: Friction coefficient of the cone (MuJoCo's default 1.0; training randomises foot friction
     #: in [0.3, 1.2], RL_SPEC §6): 0.7 is a floor the policy meets often.
@@ -134,6 +139,7 @@ class FeasibilityReport:
     stance: np.ndarray  # (T, 2) bool: the foot's lowest vertex within contact_height_m
     slide_speed_mps: np.ndarray  # (T, 2) least-moving-vertex speed, NaN when not in stance
     weight_n: float
+    ground: str = "floor z = 0"  # what the robot stands on (``Ground.describe``)
 
     @property
     def num_frames(self) -> int:
@@ -230,7 +236,7 @@ class FeasibilityReport:
         """Peak of every measure, where it happens, and how many frames reach the limit."""
         t = self.time_s
         out: dict = {"source": self.source, "fps": self.fps, "frames": self.num_frames,
-                     "duration_s": (self.num_frames - 1) / self.fps}
+                     "duration_s": (self.num_frames - 1) / self.fps, "ground": self.ground}
         f = int(np.argmax(self.root_jump_m))
         out["jump"] = {"peak_m": float(self.root_jump_m[f]), "time_s": float(t[f]),
                        "frames_over": int((self.root_jump_m >= self.cfg.jump_m).sum())}
@@ -321,10 +327,17 @@ def _model() -> _Model:
     return _Model(model, tuple(frames), tuple(points), tuple(links), mass)
 
 
-def _cone_edges(mu: float) -> np.ndarray:
-    """(3, 4) unit generators of the linearised friction cone about +z (world)."""
+def _cone_edges(mu: float, normal: np.ndarray | None = None) -> np.ndarray:
+    """(3, 4) unit generators of the linearised friction cone about ``normal`` (world; +z if
+    None)."""
     edges = np.array([[mu, 0, 1], [-mu, 0, 1], [0, mu, 1], [0, -mu, 1]], dtype=np.float64).T
-    return edges / np.linalg.norm(edges, axis=0)
+    edges /= np.linalg.norm(edges, axis=0)
+    if normal is None or np.allclose(normal, (0.0, 0.0, 1.0)):
+        return edges
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    t1 = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
+    t1 /= np.linalg.norm(t1)
+    return np.column_stack([t1, np.cross(n, t1), n]) @ edges  # the frame whose z is the normal
 
 
 def _steps(q: np.ndarray, dt: float) -> np.ndarray:
@@ -377,11 +390,13 @@ def _contact_fit(base: np.ndarray, jac_base: np.ndarray, reg: np.ndarray, cfg: F
     return lam
 
 
-def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> FeasibilityReport:
-    """Measure ``reference`` (an ``otr_gym.reference.Reference``) at ``cfg.fps`` (see the module doc)."""
+def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Ground | None = None) -> FeasibilityReport:
+    """Measure ``reference`` (an ``otr_gym.reference.Reference``) at ``cfg.fps`` standing on
+    ``ground`` (default: the floor z = 0; see the module doc)."""
     import pinocchio as pin
 
     cfg = cfg or FeasibilityCfg()
+    ground = ground or Ground.floor()
     ref = reference.resampled(cfg.fps)
     T = ref.num_frames
     mdl = _model()
@@ -395,7 +410,6 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
     v_raw, _ = _velocity_acceleration(step, dt)
     v, a = _velocity_acceleration(_lowpass(step, cfg.lowpass_hz, cfg.fps), dt)
     weight = mdl.mass_kg * GRAVITY
-    edges = _cone_edges(cfg.friction)
 
     torque = np.zeros((T, robot.NUM_JOINTS))
     accel_limit = np.zeros((T, robot.NUM_JOINTS))
@@ -410,19 +424,24 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
         accel_limit[t] = robot.EFFORT_LIMIT / np.diag(mass)[6:]
         pin.computeJointJacobians(m, data, q[t])
         pin.updateFramePlacements(m, data)
-        cols, owners = [], []
-        for k, ids in enumerate(mdl.sole_frames):
-            for fid in ids:
-                if data.oMf[fid].translation[2] <= cfg.contact_height_m:
-                    jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
-                    cols.append(jac.T @ edges)  # (nv, 4): generalised force of each cone edge
-                    owners.append(k)
-        for fid, radius in mdl.link_frames:
-            if data.oMf[fid].translation[2] - radius <= cfg.contact_height_m:
+        sole_ids = [(k, fid) for k, ids in enumerate(mdl.sole_frames) for fid in ids]
+        height, normal = ground.under(np.array([data.oMf[fid].translation for _, fid in sole_ids]
+                                               + [data.oMf[fid].translation for fid, _ in mdl.link_frames]))
+        cols, owners, point_edges = [], [], []
+        for i, (k, fid) in enumerate(sole_ids):
+            if height[i] <= cfg.contact_height_m:
+                jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
+                point_edges.append(_cone_edges(cfg.friction, normal[i]))
+                cols.append(jac.T @ point_edges[-1])  # (nv, 4): generalised force of each cone edge
+                owners.append(k)
+        for i, (fid, radius) in enumerate(mdl.link_frames, start=len(sole_ids)):
+            if height[i] - radius <= cfg.contact_height_m:
                 jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
-                # the sphere's lowest point, r below the centre: v = v_c + ω × (−r ẑ)
-                lowest = jac[:3] - _skew(np.array([0.0, 0.0, -radius])) @ jac[3:]
-                cols.append(lowest.T @ edges)
+                # the sphere's point nearest the ground, r from the centre against the normal:
+                # v = v_c + ω × (−r n)
+                lowest = jac[:3] - _skew(-radius * normal[i]) @ jac[3:]
+                point_edges.append(_cone_edges(cfg.friction, normal[i]))
+                cols.append(lowest.T @ point_edges[-1])
                 owners.append(2)
                 other_support[t] = True
         if cols:
@@ -431,7 +450,7 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
             reg = np.repeat(np.where(owner == 2, cfg.other_link_regularization, cfg.force_regularization), 4)
             lam = _contact_fit(tau[:6], gen[:6], reg, cfg)
             tau -= gen @ lam
-            per_point = (edges @ lam.reshape(-1, 4).T).T  # (P, 3) world forces
+            per_point = np.einsum("pij,pj->pi", np.stack(point_edges), lam.reshape(-1, 4))  # (P, 3) world forces
             for k in range(2):
                 foot_force[t, k] = per_point[owner == k].sum(axis=0)
             other_force[t] = per_point[owner == 2].sum(axis=0)
@@ -444,14 +463,15 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None) -> Feasibili
     jump = _off_neighbours_line(root)
     speed_ratio = np.abs(v_raw[:, 6:]) / robot.VELOCITY_LIMIT
     accel_ratio = np.abs(a[:, 6:]) / accel_limit
-    stance, slide = _stance_and_sliding(ref, cfg)
+    stance, slide = _stance_and_sliding(ref, cfg, ground)
     return FeasibilityReport(
         source=str(reference.source), fps=cfg.fps, cfg=cfg, root_height_m=root[:, 2].copy(), root_jump_m=jump,
         limb_jump_m=_off_neighbours_line(limbs),
         joint_speed_ratio=speed_ratio, joint_accel_ratio=accel_ratio, torque_nm=torque,
         torque_ratio=np.abs(torque) / robot.EFFORT_LIMIT, foot_force_w=foot_force, other_force_w=other_force,
         other_support=other_support, unsupported_force_n=unsup_f,
-        unsupported_moment_nm=unsup_m, stance=stance, slide_speed_mps=slide, weight_n=weight)
+        unsupported_moment_nm=unsup_m, stance=stance, slide_speed_mps=slide, weight_n=weight,
+        ground=ground.describe())
 
 
 def _off_neighbours_line(p: np.ndarray) -> np.ndarray:
@@ -461,14 +481,14 @@ def _off_neighbours_line(p: np.ndarray) -> np.ndarray:
     return out
 
 
-def _stance_and_sliding(ref, cfg: FeasibilityCfg) -> tuple[np.ndarray, np.ndarray]:
+def _stance_and_sliding(ref, cfg: FeasibilityCfg, ground: Ground) -> tuple[np.ndarray, np.ndarray]:
     meshes = visual_meshes()
     idx = ref.body_index(list(robot.FEET))
     stance = np.zeros((ref.num_frames, 2), bool)
     slide = np.full((ref.num_frames, 2), np.nan)
     for k, (foot, i) in enumerate(zip(robot.FEET, idx)):
         verts = posed_vertices(meshes[foot], ref.body_pos_w[:, i], ref.body_quat_w[:, i])
-        stance[:, k] = verts[..., 2].min(axis=1) <= cfg.contact_height_m
+        stance[:, k] = ground.under(verts)[0].min(axis=1) <= cfg.contact_height_m
         speed = least_moving_speed(verts, ref.fps)
         slide[stance[:, k], k] = speed[stance[:, k]]
     return stance, slide
@@ -494,7 +514,7 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     c = r.cfg
     lowpass = f"accelerations low-passed at {c.lowpass_hz:g} Hz" if c.lowpass_hz else "raw accelerations"
     lines = [(f"dynamic feasibility at {r.fps:g} fps ({s['frames']} frames, {s['duration_s']:.2f} s; friction "
-              f"{c.friction:g}, floor z = 0, on it within {100 * c.contact_height_m:g} cm, {lowpass})")]
+              f"{c.friction:g}, {r.ground}, on it within {100 * c.contact_height_m:g} cm, {lowpass})")]
     j = s["jump"]
     lines.append(f"  {'jumps (pelvis off its path)':31s} peak {100 * j['peak_m']:.1f} cm (t {j['time_s']:.2f} s); "
                  f"{j['frames_over']} frames over {100 * c.jump_m:g} cm")
@@ -603,11 +623,11 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
 
 
 def write_feasibility(reference, png: str | Path | None = None, json_path: str | Path | None = None,
-                      cfg: FeasibilityCfg | None = None) -> FeasibilityReport:
+                      cfg: FeasibilityCfg | None = None, ground: Ground | None = None) -> FeasibilityReport:
     """``python -m retarget.verify``'s section: print the report, write the timeline and the summary."""
     from otr_gym.io import write_json
 
-    report = check_feasibility(reference, cfg)
+    report = check_feasibility(reference, cfg, ground)
     print(format_report(report))
     if png:
         print(f"wrote {plot_feasibility(report, png)}")

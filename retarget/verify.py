@@ -25,7 +25,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.robot_geometry import posed_vertices, visual_meshes
 from otr_gym.rotations import quat_to_matrix
-from retarget.meshes import as_trimesh, object_mesh, signed_distance
+from retarget.meshes import InvalidMeshError, as_trimesh, object_mesh, signed_distance
 from retarget.substitute import SubstituteObject
 
 
@@ -176,7 +176,7 @@ def object_in_robot_depth(reference, spacing_m: float = 0.005, prefilter_m: floa
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m retarget.verify REFERENCE [--demo DEMO] [--object MESH] [--feasibility-png PNG]``: print
+    """``python -m retarget.verify REFERENCE [--demo DEMO] [--object MESH] [--terrain MESH] [--feasibility-png PNG]``: print
     the checks against the demonstration (with ``--demo``) and the dynamic feasibility
     (``retarget.feasibility``)."""
     import argparse
@@ -187,15 +187,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("reference", help="retargeted reference .npz (native mode)")
     p.add_argument("--demo", help="the demonstration it was made from (for the kinematic checks)")
     p.add_argument("--object", default=None, help="object mesh when the demonstration file lacks it")
+    p.add_argument("--terrain", help="terrain mesh the clip was recorded on (trimesh-readable, metres, the clip's "
+                   "world frame; the file given to env.terrain.meshes): the feasibility check stands the robot on it "
+                   "as well as on the floor z = 0")
     p.add_argument("--feasibility-png", help="write the dynamic-feasibility timeline (PNG) here")
     p.add_argument("--feasibility-json", help="write the dynamic-feasibility summary (JSON) here")
     args = p.parse_args(argv)
+    from retarget.ground import Ground
+
+    try:
+        ground = Ground.from_mesh(args.terrain) if args.terrain else Ground.floor()
+    except (InvalidMeshError, ValueError) as exc:
+        p.error(f"--terrain: {exc}")
     reference = Reference.load(args.reference)
     if args.demo is not None:
         _print_checks(reference, args)
     from retarget.feasibility import write_feasibility
 
-    write_feasibility(reference, args.feasibility_png, args.feasibility_json)
+    write_feasibility(reference, args.feasibility_png, args.feasibility_json, ground=ground)
     return 0
 
 
