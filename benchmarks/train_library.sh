@@ -12,7 +12,8 @@
 # prepare writes into REFS_DIR (skipping what exists): the two AMASS clips retargeted by us
 # (smplh_walk_jog_turn, smplx_steps_deep_squat), the three OMOMO clips retargeted by us with
 # their objects (OTR-G1-Track-v0 tracks their robot motion; the box task uses them whole),
-# Holosoma's crawl reference (a link, holosoma_crawl.npz), and the procedural walk and crawl
+# Holosoma's crawl reference (a copy, holosoma_crawl.npz, so the folder travels whole to a GPU
+# machine), and the procedural walk and crawl
 # retargeted by `otr demo` — 8 clips, the library of the issue. The crawl was recorded on a
 # slope: prepare copies it (terrain_slope.obj) to REFS_DIR/holosoma_crawl_terrain.obj and writes
 # REFS_DIR/terrain.sets, one `--set` per line giving the crawl its terrain
@@ -34,7 +35,7 @@
 # Knobs (environment): NUM_ENVS (4096, per GPU), MINUTES (8), GPUS (1 for train; 2 for scaling),
 # DEVICE (cuda), SAVE_INTERVAL (100), SEED (42), SETS (space-separated `--set KEY=VALUE` overrides,
 # e.g. "env.terminations.anchor_height.params.threshold_m=0.5"), EVAL_ENVS (randomised
-# evaluation envs, default 256 per clip), ITERS (scaling: iterations per GPU count, 150),
+# evaluation envs in all, spread evenly over the clips; default 256 per clip), ITERS (scaling: iterations per GPU count, 150),
 # SCALING_MINUTES (scaling: also train this long on each GPU count and evaluate both; 0 = skip),
 # DATA (../shared/data, or shared/data in the checkout), RUNS_DIR (OUT_DIR/runs), PYTHON (python3).
 # BeyondMimic's default actor (with state estimation: + reference-anchor position and pelvis
@@ -78,7 +79,7 @@ prepare() {
   done
   local holosoma
   holosoma=$(cd "$data/references/holosoma" && pwd)
-  ln -sf "$holosoma/motion_crawl_slope.npz" "$out/holosoma_crawl.npz"
+  [ -f "$out/holosoma_crawl.npz" ] || cp "$holosoma/motion_crawl_slope.npz" "$out/holosoma_crawl.npz"
   cp "$holosoma/terrain_slope.obj" "$out/holosoma_crawl_terrain.obj"
   echo "env.terrain.meshes.holosoma_crawl=$out/holosoma_crawl_terrain.obj" > "$out/terrain.sets"
   local tmp
@@ -131,18 +132,22 @@ frame0 = json.loads((out / "eval.json").read_text())["final"]
 rand = json.loads((out / "eval_randomized.json").read_text())["final"]
 summary = json.loads((out / "training_summary.json").read_text())
 rows = {c["clip"]: c for c in rand["clips"]}
+def ended(c):  # the terminations that ended a clip's episodes (frame 0 / randomised)
+    return ", ".join(f"{name} {n}" for name, n in c.get("ended_by", {}).items()) or "–"
 lines = [f"run {summary['run']}: {summary['iterations']} iterations, {summary['learning_minutes']:.1f} min of learning, "
          f"median {summary['median_fps']:,.0f} env steps/s", "",
-         "| clip | frames | success (frame 0) | MPJPE mm | heading-aligned mm | randomised success | randomised MPJPE mm |",
-         "|---|---|---|---|---|---|---|"]
+         "| clip | frames | success (frame 0) | MPJPE mm | heading-aligned mm | randomised success | randomised MPJPE mm "
+         "| ended by (frame 0 / randomised) |",
+         "|---|---|---|---|---|---|---|---|"]
 for c in frame0["clips"]:
     r = rows.get(c["clip"], {})
     lines.append(f"| {c['clip']} | {c['frames']} | {100 * c['success_rate']:.1f} % | {c['mpjpe_mm']:.1f} | "
                  f"{c.get('mpjpe_heading_aligned_mm', float('nan')):.1f} | "
-                 f"{100 * r.get('success_rate', float('nan')):.1f} % | {r.get('mpjpe_mm', float('nan')):.1f} |")
+                 f"{100 * r.get('success_rate', float('nan')):.1f} % | {r.get('mpjpe_mm', float('nan')):.1f} | "
+                 f"{ended(c)} / {ended(r)} |")
 lines.append(f"| **all** | {frame0['frames']} | {100 * frame0['success_rate']:.1f} % | {frame0['mpjpe_mm']:.1f} | "
              f"{frame0.get('mpjpe_heading_aligned_mm', float('nan')):.1f} | "
-             f"{100 * rand['success_rate']:.1f} % | {rand['mpjpe_mm']:.1f} |")
+             f"{100 * rand['success_rate']:.1f} % | {rand['mpjpe_mm']:.1f} | {ended(frame0)} / {ended(rand)} |")
 (out / "summary.md").write_text("\n".join(lines) + "\n")
 print("\n".join(lines))
 EOF
