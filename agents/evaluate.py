@@ -130,8 +130,7 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         if result.get("object_pos_error_cm") is not None:
             line += (f"  object {result['object_pos_error_cm']:5.1f} cm (p95 {result['object_pos_error_p95_cm']:5.1f}), "
                      f"{result['object_ori_error_deg']:5.1f} deg")
-        if result.get("ended_by"):
-            line += "  ended by " + ", ".join(f"{name} {n}" for name, n in result["ended_by"].items())
+        line += ended_by_text(result)
         print(f"{line}  ({result['envs']} envs, {result['frames']} frames)")
         if len(result["clips"]) > 1:
             print(format_clip_table(result["clips"]))
@@ -151,6 +150,13 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
     }
 
 
+def ended_by_text(result: dict) -> str:
+    """"  ended by ee_height 3, anchor_height 1" for a result (overall or one clip) whose
+    episodes some termination ended; "" otherwise."""
+    counts = result.get("ended_by") or {}
+    return "  ended by " + ", ".join(f"{name} {n}" for name, n in counts.items()) if counts else ""
+
+
 def format_clip_table(clips: list[dict]) -> str:
     """One line per clip: success, MPJPE, envs, frames (and the object error for the box task),
     then the terminations that ended its episodes."""
@@ -161,9 +167,7 @@ def format_clip_table(clips: list[dict]) -> str:
                 f"{c['envs']:>5} {c['frames']:>7}")
         if c.get("object_pos_error_cm") is not None:
             line += f"  object {c['object_pos_error_cm']:.1f} cm"
-        if c.get("ended_by"):
-            line += "  ended by " + ", ".join(f"{name} {n}" for name, n in c["ended_by"].items())
-        lines.append(line)
+        lines.append(line + ended_by_text(c))
     return "\n".join(lines)
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from agents.evaluate import format_clip_table
 from agents.metrics import EpisodeAccumulator, summarize
 
 
@@ -80,3 +81,5 @@ def test_the_terminations_that_end_each_episode_are_counted_per_clip():
     assert squat["ended_by"] == {"anchor_height": 1, "ee_height": 1}
     assert summary["ended_by"] == {"anchor_height": 2, "ee_height": 3}
     assert out["success"].tolist() == [False, False, True, False]
+    table = format_clip_table(summary["clips"]).splitlines()
+    assert table[1].endswith("ended by anchor_height 1, ee_height 2") and "ended by" in table[2]
