@@ -1,7 +1,8 @@
 """Kinematic playback of a box reference: the robot put on the reference at every physics step
 (qpos interpolated between frames, qvel from the reference), only the objects simulated (MuJoCo on
 the CPU, the OTR-G1-BoxTrack-v0 model: fitted hand boxes, grasp-fitted box, nominal mass and
-friction, no randomisation). What a policy that tracks perfectly, squeezing no harder than the
+friction, no randomisation; or, with ``draw_seed``, one draw of the training's object
+randomisation: friction, mass, inertia). What a policy that tracks perfectly, squeezing no harder than the
 reference's hands, does to the box, where the reference holds it (``HeldGrasp``: a box held
 below its centre tips in the hands unless squeezed) and which robot collision geoms the reference
 itself puts inside the simulated box (``GeomOverlap``: a torso or shoulder in there shoves the box
@@ -27,6 +28,7 @@ import torch
 from envs.box import make_box_task
 from envs.config import load_box_config
 from envs.mdp.objects import GeomOverlap, HeldGrasp, held_grasp, reference_overlaps
+from envs.mdp.randomization import randomize_objects
 from otr_gym.config import merge
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_apply_inverse, quat_error_angle
@@ -44,6 +46,8 @@ class Playback:
     grasp: HeldGrasp | None = None  # the reference's hold, None when it never holds a box
     #: robot collision geoms inside the simulated objects on the reference itself, deepest first
     overlaps: list[GeomOverlap] = field(default_factory=list)
+    #: the object randomisation's draw (body -> [friction, mass kg, inertia scale]); None: nominal
+    draw: dict[str, list[float]] | None = None
 
     def overlap_line(self) -> str:
         """The overlaps in one line: geom depth (frames), hands marked as the squeeze."""
@@ -89,10 +93,12 @@ def _robot_state(motion, qpos_all: torch.Tensor, f: float) -> tuple[np.ndarray, 
 
 
 def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
-         env_overrides: dict | None = None) -> Playback:
+         env_overrides: dict | None = None, draw_seed: int | None = None) -> Playback:
     """Play one reference; ``object_meshes`` (name -> mesh file) for the reference's objects that
     embed no mesh, names the reference does not have are ignored; ``env_overrides`` change the
-    box config (nested keys of configs/env/box.yaml, e.g. {"objects": {"grasp_fit": False}})."""
+    box config (nested keys of configs/env/box.yaml, e.g. {"objects": {"grasp_fit": False}});
+    ``draw_seed``: the moving objects' friction, mass and inertia drawn as in training
+    (``objects.randomization``, ``randomize_objects``) from this seed, instead of nominal."""
     ref = Reference.load(reference)
     names = {t.name for t in ref.objects}
     meshes = {"objects": {"overrides": {n: {"mesh": m} for n, m in (object_meshes or {}).items() if n in names}}}
@@ -105,7 +111,13 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
     overlaps = reference_overlaps(ref, task.scene, task.backend.model, cfg.objects)
     last = int(motion.clip_length[0]) - 1
     nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
-    model = kinematic_robot(task.backend.model, nv)  # the task is ours alone: changed in place
+    draw = None
+    if draw_seed is not None:
+        moving = [o.body for o in task.scene.moving]
+        drawn = randomize_objects(task.backend, moving, [o.mass_kg for o in task.scene.moving],
+                                  cfg.objects.randomization, torch.Generator().manual_seed(draw_seed))
+        draw = {body: [float(x) for x in values[0]] for body, values in drawn.items()}
+    model = kinematic_robot(task.backend.world_model(0), nv)  # the task is ours alone: changed in place
     data = mujoco.MjData(model)
     qpos_all = motion.qpos(torch.arange(last + 1)).double()
     qpos, qvel = _robot_state(motion, qpos_all, 0.0)
@@ -127,4 +139,5 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
         if err > termination:
             ended = f
             break
-    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp, overlaps)
+    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp, overlaps,
+                    draw)

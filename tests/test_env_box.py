@@ -520,6 +520,23 @@ def test_kinematic_playback_leaves_an_uncarried_box_where_it_stands(box_referenc
     assert max(result.ori_error_deg[:35]) < 1.0
 
 
+def test_playback_draws_follow_the_object_randomisation_and_their_seed(box_reference):
+    """``draw_seed`` draws the box's friction, mass and inertia from ``objects.randomization``
+    (friction [0.8, 1.0], mass 1 kg + [0, 2], inertia × [0.5, 1.5]), the same for the same seed;
+    the uncarried box of the generated clip stands where it stands whatever it weighs."""
+    from envs.kinematic_playback import play
+
+    nominal = play(box_reference)
+    first, again, other = (play(box_reference, draw_seed=k) for k in (3, 3, 4))
+    assert nominal.draw is None
+    (body, (friction, mass, scale)), = first.draw.items()
+    assert 0.8 <= friction <= 1.0 and 1.0 <= mass <= 3.0 and 0.5 <= scale <= 1.5
+    assert again.draw == first.draw and other.draw != first.draw
+    assert again.pos_error_cm == first.pos_error_cm
+    assert first.ended_at == nominal.ended_at
+    np.testing.assert_allclose(first.pos_error_cm[:35], nominal.pos_error_cm[:35], atol=0.2)
+
+
 def test_the_played_back_robot_is_immovable_within_a_physics_step(box_reference):
     """Unactuated, the G1 falls and swings under gravity inside a step, which can switch a deep
     hand-box contact off; the playback's robot must not accelerate, while the box still does."""

@@ -49,6 +49,10 @@ class MuJoCoBackend(PhysicsBackend):
         self._pull()
 
     # ------------------------------------------------------------ views
+    def world_model(self, world: int = 0) -> mujoco.MjModel:
+        """World ``world``'s own MjModel, with its randomised parameters (friction, mass, ...)."""
+        return self._models[world]
+
     @property
     def qpos(self) -> torch.Tensor:
         return self._qpos
