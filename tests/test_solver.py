@@ -10,7 +10,7 @@ from clips import clip
 from otr_gym import robot
 from retarget.kinematics import NUM_LINKS, RobotKinematics, segment_closest_points
 from retarget.pipeline import RetargetConfig, retarget_demonstration
-from retarget.problem import build_problem, resample_demonstration
+from retarget.problem import SolverConfig, build_problem, resample_demonstration
 from retarget.residuals import FIXED, Rows
 from retarget.iterate import new_state
 from retarget.qp import assemble_cost, body_jacobians, model_at, qp_step
@@ -345,3 +345,21 @@ def test_the_extreme_rows_group_sums_repeat_numpys_pairwise_sum_bit_for_bit():
     # not merely close: a plain left-to-right sum of the same terms differs somewhere
     x = rng.normal(size=(1000, 1)) * 10.0 ** rng.uniform(-4, 4, size=(1000, 1))
     assert float(np.cumsum(x[:, 0])[-1]) != gathered_sum(x, np.arange(1000), np.int64(0), 0, 1000)
+
+
+def test_link_clearance_keeps_the_named_links_that_far_from_the_object():
+    demo = resample_demonstration(clip("box_carry", 130, 140), 50.0)  # the hands close on the box
+    plain = retarget_demonstration(demo, RetargetConfig())
+    clearance = 0.02
+    hands = {link: clearance for link in robot.HANDS}
+    kept = retarget_demonstration(demo, RetargetConfig(solver=SolverConfig(link_clearance_m=hands)))
+
+    def hand_gap(ref) -> float:  # the hand units' smallest distance to the box over the clip
+        c = ref.contacts
+        units = [i for i, name in enumerate(c.body_names) if name.startswith(tuple(robot.HANDS))]
+        return float(c.distance[:, units, c.channel_names.index("box")].min())
+
+    assert hand_gap(plain) < 0.005  # the hands grasp the box
+    assert hand_gap(kept) >= clearance - EPS_COL
+    with pytest.raises(ValueError, match="unknown G1 link 'palm'"):
+        retarget_demonstration(demo, RetargetConfig(solver=SolverConfig(link_clearance_m={"palm": 0.01})))
