@@ -96,7 +96,7 @@ def load_config(path: str | Path | None = None, **overrides) -> RetargetConfig:
     overrides = {k: v for k, v in overrides.items() if v is not None}
     if overrides:
         cfg = dataclasses.replace(cfg, **overrides)
-    from retarget.problem import MODES
+    from retarget.problem import MODES, link_clearance
 
     if cfg.mode not in MODES:
         raise ConfigError(f"unknown mode '{cfg.mode}' (choose from {MODES})")
@@ -104,6 +104,7 @@ def load_config(path: str | Path | None = None, **overrides) -> RetargetConfig:
 
     try:
         link_grouping(cfg.links_together)
+        link_clearance(cfg.solver.link_clearance_m)
     except ValueError as exc:
         raise ConfigError(str(exc)) from exc
     if cfg.fps is not None and not cfg.fps > 0:

@@ -59,6 +59,19 @@ def test_unknown_link_grouping_is_named_with_the_choices(tmp_path):
     assert load_config(links_together="hand").links_together == "hand"
 
 
+def test_link_clearances_are_checked_when_the_config_loads(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("solver:\n  link_clearance_m: {torso: 0.01}\n")
+    with pytest.raises(ConfigError, match=r"unknown G1 link 'torso'"):
+        load_config(bad)
+    bad.write_text("solver:\n  link_clearance_m: {torso_link: -0.01}\n")
+    with pytest.raises(ConfigError, match=r"'torso_link' must be a finite clearance >= 0 m, got -0.01"):
+        load_config(bad)
+    good = tmp_path / "good.yaml"
+    good.write_text("solver:\n  link_clearance_m: {torso_link: 0.015}\n")
+    assert load_config(good).solver.link_clearance_m == {"torso_link": 0.015}
+
+
 def test_folder_is_retargeted_then_skipped_on_the_second_run(tiny, tmp_path, capsys):
     out = tmp_path / "out"
     assert main(_args(str(tiny), "--out", str(out), "--mode", "robot-only")) == 0
