@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from agents.train import parse_sets
-from envs.kinematic_playback import Playback, play
+from envs.kinematic_playback import DRAWS_HEADER, Playback, draws_row, draws_summary, play
 from otr_gym.io import save_figure, write_json
 
 
@@ -65,18 +65,8 @@ def plot(results: list[Playback], out_png: str | Path) -> Path:
 
 
 def draws_table(drawn: dict[str, list[Playback]]) -> str:
-    """Per reference: runs carried to the clip's end, the runs' mean box error (mean ± sd, range),
-    its mean p95 and the mean orientation error."""
-    lines = ["| reference | runs carried to the end | box error cm, mean of a run: mean ± sd (min–max) "
-             "| p95 cm (mean) | orientation deg (mean) |", "|---|---|---|---|---|"]
-    for ref, runs in drawn.items():
-        means = np.array([np.mean(r.pos_error_cm) for r in runs])
-        p95 = np.mean([np.percentile(r.pos_error_cm, 95) for r in runs])
-        ori = np.mean([np.mean(r.ori_error_deg) for r in runs])
-        carried = sum(r.ended_at is None for r in runs)
-        lines.append(f"| {Path(ref).name} | {carried} / {len(runs)} | {means.mean():.1f} ± {means.std():.1f} "
-                     f"({means.min():.1f}–{means.max():.1f}) | {p95:.1f} | {ori:.1f} |")
-    return "\n".join(lines)
+    """Per reference: ``envs.kinematic_playback.draws_summary`` as a markdown table."""
+    return "\n".join([DRAWS_HEADER] + [draws_row(Path(ref).name, draws_summary(runs)) for ref, runs in drawn.items()])
 
 
 def main(argv: list[str] | None = None) -> int:

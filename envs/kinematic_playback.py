@@ -141,3 +141,27 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
             break
     return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp, overlaps,
                     draw)
+
+
+def draws_summary(runs: list[Playback]) -> dict:
+    """The spread of playbacks of one reference under object draws: runs carried to the clip's end,
+    each run's mean box error (cm; a run that loses the box averages over the frames it played),
+    their mean, sd, min and max, the mean p95 and the mean orientation error (deg)."""
+    means = np.array([np.mean(r.pos_error_cm) for r in runs])
+    return {"runs": len(runs), "carried": sum(r.ended_at is None for r in runs),
+            "error_cm_mean": float(means.mean()), "error_cm_sd": float(means.std()),
+            "error_cm_min": float(means.min()), "error_cm_max": float(means.max()),
+            "error_p95_cm": float(np.mean([np.percentile(r.pos_error_cm, 95) for r in runs])),
+            "orientation_deg": float(np.mean([np.mean(r.ori_error_deg) for r in runs]))}
+
+
+def draws_row(name: str, summary: dict) -> str:
+    """One markdown row of ``draws_summary`` (see ``DRAWS_HEADER``)."""
+    s = summary
+    return (f"| {name} | {s['carried']} / {s['runs']} | {s['error_cm_mean']:.1f} ± {s['error_cm_sd']:.1f} "
+            f"({s['error_cm_min']:.1f}–{s['error_cm_max']:.1f}) | {s['error_p95_cm']:.1f} | {s['orientation_deg']:.1f} |")
+
+
+DRAWS_HEADER = ("| reference | runs carried to the end | box error cm, mean of a run: mean ± sd (min–max) "
+                "| p95 cm (mean) | orientation deg (mean) |\n|---|---|---|---|---|")
+
