@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "inspect": ("otr_gym.summary", "summarise a demonstration or reference file"),
     "retarget": ("retarget.pipeline", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
     "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
+    "verify": ("retarget.verify", "check a reference: penetration, limits and holds against its demonstration; "
+                                  "dynamic feasibility (on its terrain too)"),
     "variants": ("retarget.variants", "one demonstration, many references: substitute shapes and sizes (Table IV)"),
     "view": ("retarget.viewer", "web viewer (viser): references, objects, the person, contacts, metrics"),
     "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),

@@ -175,15 +175,8 @@ def object_in_robot_depth(reference, spacing_m: float = 0.005, prefilter_m: floa
     return deepest
 
 
-def main(argv: list[str] | None = None) -> int:
-    """``python -m retarget.verify REFERENCE [--demo DEMO] [--object MESH] [--terrain MESH] [--feasibility-png PNG]``: print
-    the checks against the demonstration (with ``--demo``) and the dynamic feasibility
-    (``retarget.feasibility``)."""
-    import argparse
-
-    from otr_gym.reference import Reference
-
-    p = argparse.ArgumentParser(prog="python -m retarget.verify", description=__doc__.split("\n\n")[0])
+def configure_parser(p) -> None:
+    """``otr verify`` / ``python -m retarget.verify``'s arguments."""
     p.add_argument("reference", help="retargeted reference .npz (native mode)")
     p.add_argument("--demo", help="the demonstration it was made from (for the kinematic checks)")
     p.add_argument("--object", default=None, help="object mesh when the demonstration file lacks it")
@@ -192,14 +185,30 @@ def main(argv: list[str] | None = None) -> int:
                    "as well as on the floor z = 0")
     p.add_argument("--feasibility-png", help="write the dynamic-feasibility timeline (PNG) here")
     p.add_argument("--feasibility-json", help="write the dynamic-feasibility summary (JSON) here")
-    args = p.parse_args(argv)
+
+
+def main(args=None) -> int:
+    """``otr verify REFERENCE [--demo DEMO] [--object MESH] [--terrain MESH] [--feasibility-png PNG]``
+    (or ``python -m retarget.verify …``; ``args`` parsed, or an argv list): print the checks
+    against the demonstration (with ``--demo``) and the dynamic feasibility
+    (``retarget.feasibility``). A missing or unreadable reference or terrain: a message naming
+    the file, exit code 2."""
+    import argparse
+    import sys
+
+    from otr_gym.reference import InvalidReferenceError, Reference
     from retarget.ground import Ground
 
+    if not isinstance(args, argparse.Namespace):
+        p = argparse.ArgumentParser(prog="python -m retarget.verify", description=__doc__.split("\n\n")[0])
+        configure_parser(p)
+        args = p.parse_args(args)
     try:
         ground = Ground.from_mesh(args.terrain) if args.terrain else Ground.floor()
-    except (InvalidMeshError, ValueError) as exc:
-        p.error(f"--terrain: {exc}")
-    reference = Reference.load(args.reference)
+        reference = Reference.load(args.reference)
+    except (InvalidMeshError, InvalidReferenceError, ValueError) as exc:
+        print(f"otr verify: {exc}", file=sys.stderr)
+        return 2
     if args.demo is not None:
         _print_checks(reference, args)
     from retarget.feasibility import write_feasibility

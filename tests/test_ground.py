@@ -57,7 +57,7 @@ def test_heights_and_normals_over_a_ramp_a_platform_and_the_floor(tmp_path):
     assert "terrain terrain.obj" in g.describe() and Ground.floor().describe() == "floor z = 0"
 
 
-def test_bad_terrain_files_are_named(tmp_path):
+def test_bad_terrain_files_are_named(tmp_path, capsys):
     with pytest.raises(InvalidMeshError, match="missing.obj"):
         Ground.from_mesh(tmp_path / "missing.obj")
     # two vertical sheets: faces only, none to stand on
@@ -66,8 +66,10 @@ def test_bad_terrain_files_are_named(tmp_path):
     with pytest.raises(ValueError, match="wall.obj: terrain mesh has no upward-facing triangle"):
         Ground.from_mesh(_save(wall, tmp_path / "wall.obj"))
     clip = Reference.from_qpos(np.tile(robot.default_qpos(), (10, 1)), 50.0).save(tmp_path / "clip.npz")
-    with pytest.raises(SystemExit):
-        verify.main([str(clip), "--terrain", str(tmp_path / "missing.obj")])
+    assert verify.main([str(clip), "--terrain", str(tmp_path / "missing.obj")]) == 2
+    assert verify.main([str(tmp_path / "no_such_clip.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "missing.obj: mesh file not found" in err and "no_such_clip.npz" in err
 
 
 def test_a_robot_on_a_platform_stands_on_it_only_with_its_terrain(tmp_path):
@@ -120,3 +122,19 @@ def test_the_friction_cone_follows_the_ramp_normal(tmp_path):
     assert steep.stance.all()
     expected = np.sin(np.radians(45.0) - np.arctan(mu))
     assert steep.unsupported_fraction.mean() == pytest.approx(expected, rel=0.01)
+
+
+def test_otr_verify_stands_a_clip_on_its_terrain(tmp_path, capsys):
+    from otr_gym.cli import main as otr
+
+    platform = trimesh.creation.box(extents=(2.0, 2.0, 0.4))
+    platform.apply_translation((0.0, 0.0, 0.2))
+    mesh = _save(platform, tmp_path / "platform.obj")
+    qpos = np.tile(robot.default_qpos(), (20, 1))
+    qpos[:, 2] += 0.4
+    clip = Reference.from_qpos(qpos, 50.0).save(tmp_path / "on_platform.npz")
+    assert otr(["verify", str(clip)]) == 0
+    assert "1 phase(s), 0.40 s in total" in capsys.readouterr().out  # a hover above the floor
+    assert otr(["verify", str(clip), "--terrain", mesh]) == 0
+    out = capsys.readouterr().out
+    assert "terrain platform.obj" in out and "0 phase(s)" in out and "no frame reaches a limit" in out
