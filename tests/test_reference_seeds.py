@@ -41,6 +41,7 @@ def test_two_seeds_are_retargeted_ranked_and_resumed(seeds_module, tmp_path, cap
     summary = json.loads((out / "seeds.json").read_text())
     rows = summary["seeds"]
     assert sorted(r["seed"] for r in rows) == [0, 1] and all(r["runs"] == 2 for r in rows)
+    assert all(isinstance(r["overlaps"], list) for r in rows)
     # best first: most runs carried, then the smaller mean error
     assert [(-r["carried"], r["error_cm_mean"]) for r in rows] == sorted((-r["carried"], r["error_cm_mean"]) for r in rows)
     files = [Path(r["reference"]) for r in rows]
