@@ -39,7 +39,7 @@ import numpy as np
 from tqdm import tqdm
 
 from agents.train import parse_sets
-from envs.kinematic_playback import DRAWS_HEADER, Playback, draws_row, draws_summary, play
+from envs.kinematic_playback import DRAWS_HEADER, Playback, draws_row, draws_summary, play_draws
 from otr_gym.io import save_figure, write_json
 
 
@@ -92,12 +92,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.draws < 0:
         parser.error(f"--draws must be >= 0, got {args.draws}")
     results, drawn = [], {}
-    for ref in args.references:
+    for ref in tqdm(args.references, desc="references", disable=not args.draws):
         # a reference with objects it cannot place (no mesh, no objects) is named by the loader
-        results.append(play(ref, meshes, overrides))
-        print(f"{ref}: {results[-1].frames} frames played", file=sys.stderr)
-        drawn[ref] = [play(ref, meshes, overrides, draw_seed=args.seed + k)
-                      for k in tqdm(range(args.draws), desc=f"{Path(ref).name} draws", disable=not args.draws)]
+        nominal, *draws = play_draws(ref, [None, *range(args.seed, args.seed + args.draws)], meshes, overrides)
+        results.append(nominal)
+        drawn[ref] = draws
+        print(f"{ref}: {nominal.frames} frames played", file=sys.stderr)
     print("| reference | frames carried | box error cm mean / p95 | orientation error deg mean / max | box past 25 cm "
           "| frames held | hands above the box centre (half-heights) | hand centres above it | "
           "box centre height, tilt (held) |")

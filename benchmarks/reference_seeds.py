@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 from tqdm import tqdm
 
-from envs.kinematic_playback import DRAWS_HEADER, draws_row, draws_summary, play
+from envs.kinematic_playback import DRAWS_HEADER, draws_row, draws_summary, play_draws
 from otr_gym.io import write_json
 from retarget.demos import load_demonstration
 from retarget.pipeline import ConfigError, load_config, retarget_demonstration
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.draws < 1:
         parser.error(f"--draws must be >= 1, got {args.draws}")
     try:
-        load_config(args.config)  # a bad config is refused before any work
+        base = load_config(args.config)  # a bad config is refused before any work
     except ConfigError as exc:
         parser.error(str(exc))
     demo = load_demonstration(args.demo, args.object)
@@ -71,8 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         path = out / f"seed{seed}" / f"{Path(args.demo).stem}.npz"
         if not path.is_file():  # Reference.save writes atomically: a file present is whole
             path.parent.mkdir(parents=True, exist_ok=True)
-            retarget_demonstration(demo, load_config(args.config, seed=seed)).save(path)
-        runs = [play(path, draw_seed=k) for k in range(args.draws)]
+            retarget_demonstration(demo, replace(base, seed=seed)).save(path)
+        runs = play_draws(path, range(args.draws))
         # the robot collision geoms inside the simulated box on the reference itself: how deep the
         # wrists squeeze it is what separated the carried seeds from the lost ones on OMOMO's box
         rows.append({"seed": seed, "reference": str(path), **draws_summary(runs),

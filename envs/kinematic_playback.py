@@ -6,7 +6,8 @@ randomisation: friction, mass, inertia). What a policy that tracks perfectly, sq
 reference's hands, does to the box, where the reference holds it (``HeldGrasp``: a box held
 below its centre tips in the hands unless squeezed) and which robot collision geoms the reference
 itself puts inside the simulated box (``GeomOverlap``: a torso or shoulder in there shoves the box
-aside). ``benchmarks/grasp_playback.py`` is its command line.
+aside). ``play_draws`` plays one reference under several draws, building the task once.
+``benchmarks/grasp_playback.py`` is its command line.
 
 The robot must also be immovable *within* each step's contact solve: left as the unactuated G1,
 its links fall and swing under gravity during the step, and a hand accelerating away from the box
@@ -18,6 +19,7 @@ against a body driven on the reference, as a perfect tracker's stiff joints woul
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -99,6 +101,13 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
     box config (nested keys of configs/env/box.yaml, e.g. {"objects": {"grasp_fit": False}});
     ``draw_seed``: the moving objects' friction, mass and inertia drawn as in training
     (``objects.randomization``, ``randomize_objects``) from this seed, instead of nominal."""
+    return play_draws(reference, [draw_seed], object_meshes, env_overrides)[0]
+
+
+def play_draws(reference: str | Path, draw_seeds: Sequence[int | None], object_meshes: dict[str, str] | None = None,
+               env_overrides: dict | None = None) -> list[Playback]:
+    """``play`` once per entry of ``draw_seeds`` (None: nominal), the task, the reference's hold
+    and overlaps and the robot's path built once for all of them."""
     ref = Reference.load(reference)
     names = {t.name for t in ref.objects}
     meshes = {"objects": {"overrides": {n: {"mesh": m} for n, m in (object_meshes or {}).items() if n in names}}}
@@ -111,36 +120,44 @@ def play(reference: str | Path, object_meshes: dict[str, str] | None = None,
     overlaps = reference_overlaps(ref, task.scene, task.backend.model, cfg.objects)
     last = int(motion.clip_length[0]) - 1
     nq, nv = 7 + motion.joint_pos.shape[1], 6 + motion.joint_pos.shape[1]
-    draw = None
-    if draw_seed is not None:
-        moving = [o.body for o in task.scene.moving]
-        drawn = randomize_objects(task.backend, moving, [o.mass_kg for o in task.scene.moving],
-                                  cfg.objects.randomization, torch.Generator().manual_seed(draw_seed))
-        draw = {body: [float(x) for x in values[0]] for body, values in drawn.items()}
-    model = kinematic_robot(task.backend.world_model(0), nv)  # the task is ours alone: changed in place
-    data = mujoco.MjData(model)
-    qpos_all = motion.qpos(torch.arange(last + 1)).double()
-    qpos, qvel = _robot_state(motion, qpos_all, 0.0)
-    data.qpos[:nq], data.qvel[:nv] = qpos, qvel
-    data.qpos[nq:nq + 7] = torch.cat([objects.pos_w[0, 0], objects.quat_w[0, 0]]).numpy()
-    mujoco.mj_forward(model, data)
     decimation = cfg.sim.decimation
+    qpos_all = motion.qpos(torch.arange(last + 1)).double()
+    # the robot's state at the start and after every physics substep: the same for every draw
+    path = [_robot_state(motion, qpos_all, f / decimation) for f in range(last * decimation + 1)]
+    start = torch.cat([objects.pos_w[0, 0], objects.quat_w[0, 0]]).numpy()
     termination = float(cfg.terminations["object_pos"].params["threshold_m"])
-    pos_err, ori_err, ended = [], [], None
-    for f in range(1, last + 1):
-        for k in range(decimation):
-            qpos, qvel = _robot_state(motion, qpos_all, f - 1 + (k + 1) / decimation)
-            data.qpos[:nq], data.qvel[:nv] = qpos, qvel
-            mujoco.mj_step(model, data)
-        box = torch.from_numpy(data.qpos[nq:nq + 7].copy()).float()
-        err = float(torch.linalg.norm(box[:3] - objects.pos_w[f, 0]))
-        pos_err.append(100 * err)
-        ori_err.append(float(torch.rad2deg(quat_error_angle(objects.quat_w[f, 0], box[3:] / box[3:].norm()))))
-        if err > termination:
-            ended = f
-            break
-    return Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp, overlaps,
-                    draw)
+    moving = [o.body for o in task.scene.moving]
+    # the world's own model: the draws below change its objects (absolutely, not cumulatively)
+    model = kinematic_robot(task.backend.world_model(0), nv)  # the task is ours alone: changed in place
+    nominal = model.geom_friction.copy(), model.body_mass.copy(), model.body_inertia.copy()
+    out = []
+    for seed in draw_seeds:
+        draw = None
+        if seed is None:
+            model.geom_friction[:], model.body_mass[:], model.body_inertia[:] = nominal
+        else:
+            drawn = randomize_objects(task.backend, moving, [o.mass_kg for o in task.scene.moving],
+                                      cfg.objects.randomization, torch.Generator().manual_seed(seed))
+            draw = {body: [float(x) for x in values[0]] for body, values in drawn.items()}
+        data = mujoco.MjData(model)
+        data.qpos[:nq], data.qvel[:nv] = path[0]
+        data.qpos[nq:nq + 7] = start
+        mujoco.mj_forward(model, data)
+        pos_err, ori_err, ended = [], [], None
+        for f in range(1, last + 1):
+            for k in range(decimation):
+                data.qpos[:nq], data.qvel[:nv] = path[(f - 1) * decimation + k + 1]
+                mujoco.mj_step(model, data)
+            box = torch.from_numpy(data.qpos[nq:nq + 7].copy()).float()
+            err = float(torch.linalg.norm(box[:3] - objects.pos_w[f, 0]))
+            pos_err.append(100 * err)
+            ori_err.append(float(torch.rad2deg(quat_error_angle(objects.quat_w[f, 0], box[3:] / box[3:].norm()))))
+            if err > termination:
+                ended = f
+                break
+        out.append(Playback(str(reference), len(pos_err), last + 1, ended, termination, pos_err, ori_err, grasp,
+                            overlaps, draw))
+    return out
 
 
 def draws_summary(runs: list[Playback]) -> dict:

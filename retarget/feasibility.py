@@ -65,6 +65,7 @@ import numpy as np
 
 from otr_gym import robot
 from otr_gym.robot_geometry import collision_capsules, posed_vertices, visual_meshes
+from otr_gym.rotations import quat_from_vector_pairs, quat_to_matrix, skew
 from retarget.evaluation.feet import least_moving_speed
 from retarget.ground import Ground
 
@@ -328,16 +329,14 @@ def _model() -> _Model:
 
 
 def _cone_edges(mu: float, normal: np.ndarray | None = None) -> np.ndarray:
-    """(3, 4) unit generators of the linearised friction cone about ``normal`` (world; +z if
-    None)."""
+    """(3, 4) unit generators of the linearised friction cone about ``normal`` (world, unit; +z
+    if None): the +z pyramid turned onto the normal (upward normals, never parallel to x)."""
     edges = np.array([[mu, 0, 1], [-mu, 0, 1], [0, mu, 1], [0, -mu, 1]], dtype=np.float64).T
     edges /= np.linalg.norm(edges, axis=0)
-    if normal is None or np.allclose(normal, (0.0, 0.0, 1.0)):
+    if normal is None:
         return edges
-    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
-    t1 = np.cross(n, (1.0, 0.0, 0.0) if abs(n[0]) < 0.9 else (0.0, 1.0, 0.0))
-    t1 /= np.linalg.norm(t1)
-    return np.column_stack([t1, np.cross(n, t1), n]) @ edges  # the frame whose z is the normal
+    x, z = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    return quat_to_matrix(quat_from_vector_pairs(z, x, np.asarray(normal, np.float64), x)) @ edges
 
 
 def _steps(q: np.ndarray, dt: float) -> np.ndarray:
@@ -373,10 +372,6 @@ def _velocity_acceleration(step: np.ndarray, dt: float) -> tuple[np.ndarray, np.
     return v, a
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _contact_fit(base: np.ndarray, jac_base: np.ndarray, reg: np.ndarray, cfg: FeasibilityCfg) -> np.ndarray:
     """λ ≥ 0 (N along the cone edges) minimising ‖W(base − jac_base λ)‖² + Σ εᵢλᵢ² (NNLS on the
     stacked system; ``reg`` the εᵢ)."""
@@ -410,7 +405,12 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     v_raw, _ = _velocity_acceleration(step, dt)
     v, a = _velocity_acceleration(_lowpass(step, cfg.lowpass_hz, cfg.fps), dt)
     weight = mdl.mass_kg * GRAVITY
+    floor_edges = _cone_edges(cfg.friction)
 
+    def edges(n: np.ndarray) -> np.ndarray:  # the floor's cone is built once; a terrain face's at its contact
+        return floor_edges if n[2] == 1.0 else _cone_edges(cfg.friction, n)
+
+    sole_ids = [(k, fid) for k, ids in enumerate(mdl.sole_frames) for fid in ids]
     torque = np.zeros((T, robot.NUM_JOINTS))
     accel_limit = np.zeros((T, robot.NUM_JOINTS))
     foot_force = np.zeros((T, 2, 3))
@@ -424,14 +424,13 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         accel_limit[t] = robot.EFFORT_LIMIT / np.diag(mass)[6:]
         pin.computeJointJacobians(m, data, q[t])
         pin.updateFramePlacements(m, data)
-        sole_ids = [(k, fid) for k, ids in enumerate(mdl.sole_frames) for fid in ids]
         height, normal = ground.under(np.array([data.oMf[fid].translation for _, fid in sole_ids]
                                                + [data.oMf[fid].translation for fid, _ in mdl.link_frames]))
         cols, owners, point_edges = [], [], []
         for i, (k, fid) in enumerate(sole_ids):
             if height[i] <= cfg.contact_height_m:
                 jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
-                point_edges.append(_cone_edges(cfg.friction, normal[i]))
+                point_edges.append(edges(normal[i]))
                 cols.append(jac.T @ point_edges[-1])  # (nv, 4): generalised force of each cone edge
                 owners.append(k)
         for i, (fid, radius) in enumerate(mdl.link_frames, start=len(sole_ids)):
@@ -439,8 +438,8 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
                 jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
                 # the sphere's point nearest the ground, r from the centre against the normal:
                 # v = v_c + ω × (−r n)
-                lowest = jac[:3] - _skew(-radius * normal[i]) @ jac[3:]
-                point_edges.append(_cone_edges(cfg.friction, normal[i]))
+                lowest = jac[:3] - skew(-radius * normal[i]) @ jac[3:]
+                point_edges.append(edges(normal[i]))
                 cols.append(lowest.T @ point_edges[-1])
                 owners.append(2)
                 other_support[t] = True

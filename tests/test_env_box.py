@@ -537,6 +537,17 @@ def test_playback_draws_follow_the_object_randomisation_and_their_seed(box_refer
     np.testing.assert_allclose(first.pos_error_cm[:35], nominal.pos_error_cm[:35], atol=0.2)
 
 
+def test_draws_played_together_equal_draws_played_alone(box_reference):
+    """``play_draws`` builds the task once: a nominal run after a draw is nominal again, and every
+    run equals the same run played on its own."""
+    from envs.kinematic_playback import play, play_draws
+
+    first, drawn, again = play_draws(box_reference, [None, 3, None])
+    assert first.draw is None and again.draw is None and drawn.draw == play(box_reference, draw_seed=3).draw
+    assert first.pos_error_cm == again.pos_error_cm == play(box_reference).pos_error_cm
+    assert drawn.pos_error_cm == play(box_reference, draw_seed=3).pos_error_cm
+
+
 def test_the_played_back_robot_is_immovable_within_a_physics_step(box_reference):
     """Unactuated, the G1 falls and swings under gravity inside a step, which can switch a deep
     hand-box contact off; the playback's robot must not accelerate, while the box still does."""
