@@ -16,7 +16,7 @@
 # a git-ignored folder IN (default out/b5in) carried with the call:
 #   mkdir -p out/b5in; otr demo --out out/demo_box; cp out/demo_box/box_carry.npz out/b5in/demo_box_carry.npz
 #   cp ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz ../shared/data/objects/largebox.obj out/b5in/
-# Used for README's "five runs on one GPU" table: `... 6 550` then `... 10 420 report 585`.
+# Used for docs/results/box.md's "five runs on one GPU" table: `... 6 550` then `... 10 420 report 585`.
 # Knobs: JOBS (subset), NUM_ENVS (4096), EVAL_ENVS (512), DEVICE (cuda), OMP_NUM_THREADS (3), IN.
 set -uo pipefail
 total=$1; train_deadline=$2; do_report=${3:-}; report_deadline=${4:-590}

@@ -18,7 +18,7 @@
 #   ours_ori       ours with a coarse object orientation term (σ 1 rad): a variant, for direction
 #   ours_tip       ours_ori plus a termination when the box turns > 1 rad from its reference
 #   JOB_q0         any job with the grasp fit's narrowing off (objects.grasp_fit_quantile=0): the demo
-#                  is learned that way (README), not with the fit. E.g. ours_q0, holo_q0, no_contact_q0
+#                  is learned that way (docs/results/box.md), not with the fit. E.g. ours_q0, holo_q0, no_contact_q0
 #   JOB_xy         any job plus a termination when the torso is > XY_M (0.5) m from its reference horizontally
 #                  (anchor_horizontal_error; the demo's walk-in trails by up to 70 cm). E.g. ours_q0_xy
 #   ours_wrist     ours with each hand's wrist box counted as the hand (objects.hand_contact_roots: the
@@ -37,7 +37,7 @@
 #   cp ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz ../shared/data/objects/largebox.obj out/gin/
 # Knobs: SETS (--set overrides for every job, space-separated), NUM_ENVS (8192), EVAL_ENVS (1024),
 # SEED (42), REPORT_S (240), DEVICE (cuda), IN (out/gin), OMP_NUM_THREADS (4), XY_M (0.5, the _xy jobs').
-# README's four-GPU table: SETS="$(cat benchmarks/box_anchor_fine.sets)" benchmarks/train_box_gpus.sh start 25 \
+# docs/results/box.md's four-GPU table: SETS="$(cat benchmarks/box_anchor_fine.sets)" benchmarks/train_box_gpus.sh start 25 \
 #   0:ours 1:holo@10,demo@10 2:no_contact@10,ours_ori 3:no_object_vel@10,throughput
 set -uo pipefail
 usage="usage: benchmarks/train_box_gpus.sh start DEADLINE_MIN QUEUE... | wait SECONDS | pack TGZ | show JOB..."

@@ -79,7 +79,7 @@ class CommandCfg:
     #: no starts, hence no failures, and is forgotten. It happened to the box clip's first second
     #: (box.yaml) and to the AMASS jog's: under §2's floor its first second drew 1.7 % of the
     #: starts and a 19-minute policy fell at frame 60 from frame 0; with this one, 100 % and
-    #: 45.4 mm (README, *Real mocap*).
+    #: 45.4 mm (docs/results/real_mocap.md).
     adaptive_floor: str = "relative"
     adaptive_kernel_size: int = 1  # §2: λⁱ kernel of size 1 (no smoothing)
     adaptive_lambda: float = 0.8  # §2

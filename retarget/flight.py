@@ -51,7 +51,7 @@ class FlightConfig:
 
     #: Run the second pass on clips whose first solution leaves the ground. Off by default:
     #: on the jog it made the flights ballistic but the policy trained on it tracked no better
-    #: (100 %, 47.7 mm against 45.4 mm, one 19-minute run each; README, *Real mocap*), and it
+    #: (100 %, 47.7 mm against 45.4 mm, one 19-minute run each; docs/results/real_mocap.md), and it
     #: doubles such a clip's solve time.
     enabled: bool = False
     #: A frame is supported while some link is this close to the ground or a static object (m;

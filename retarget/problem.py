@@ -91,8 +91,8 @@ class SolverConfig:
     #: collides the G1's collision capsules, which stand out of the visual meshes that the
     #: solve keeps off the object: on the OMOMO large box our torso and right shoulder capsules
     #: sit 17 and 13 mm inside the simulated box through the lift. Empty by default: on that
-    #: clip the kinematic playback varies as much with the probe seed as with this (README
-    #: "Box pick-and-place", ``benchmarks/reference_seeds.py``).
+    #: clip the kinematic playback varies as much with the probe seed as with this (docs/results/box.md,
+    #: ``benchmarks/reference_seeds.py``).
     link_clearance_m: dict[str, float] = field(default_factory=dict)
     #: Our choice: pairs closer than this seed the QP's constraint rows; every other pair of the
     #: band is checked against each QP solution and added if its linearisation is violated.
