@@ -7,10 +7,12 @@ share of it (which bodies carry the error, and when), how far the robot's
 anchor (torso) is from the reference anchor horizontally, and for the moving objects (box
 task) the position error, the height offset from the reference (negative: below it) and the
 orientation error, each a mean over the moving objects. It names what ended the episode:
-the termination terms that fired, or the clip's end.
+the termination terms that fired, or the clip's end. ``--start-frame K`` starts the episode
+on the reference's frame K instead (the clip cut there, ``Reference.subclip``): whether a
+failure comes from drift carried from the start or from the passage itself.
 
-    python -m agents.episode_trace RUN_OR_CHECKPOINT [--reference REF] [--device cpu] \\
-        [--every 10] [--png trace.png] [--json trace.json]
+    python -m agents.episode_trace RUN_OR_CHECKPOINT [--reference REF] [--start-frame K] \\
+        [--device cpu] [--every 10] [--png trace.png] [--json trace.json]
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ class EpisodeTrace:
 
     checkpoint: str
     reference: str
-    clip_frames: int
+    clip_frames: int  # of the whole clip
     frame: list[int]  # reference frame the step's state is compared with (50 Hz clips: 20 ms each)
     mpjpe_mm: list[float]  # root-relative, 14 bodies (the evaluation's metric)
     anchor_lag_cm: list[float]  # ‖xy of the reference anchor − xy of the robot's anchor‖, world
@@ -58,6 +60,7 @@ class EpisodeTrace:
     object_termination_cm: float | None = None  # the run's object position termination, if any
     body_names: list[str] | None = None  # the tracked bodies, in the order of body_error_mm's rows
     body_error_mm: list[list[float]] | None = None  # per step, per body: root-relative error (mm)
+    start_frame: int = 0  # the reference frame the episode started on
 
     @property
     def steps(self) -> int:
@@ -89,8 +92,9 @@ class EpisodeTrace:
 
 @torch.inference_mode()
 def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = None, device: str = "cpu",
-                  seed: int = 0) -> EpisodeTrace:
-    """Run one evaluation episode of a checkpoint (a run folder: its latest) on one clip."""
+                  seed: int = 0, start_frame: int = 0) -> EpisodeTrace:
+    """Run one evaluation episode of a checkpoint (a run folder: its latest) on one clip, from
+    its frame ``start_frame``; frames are reported in the whole clip's numbering."""
     ckpt = runs.resolve_checkpoint(Path(run_or_checkpoint))
     torch_device = resolve_device(device)
     policy = load_policy(ckpt, torch_device)
@@ -99,8 +103,11 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     if len(library.references) != 1:
         raise ValueError(f"{reference}: {len(library.references)} clips; trace one clip at a time "
                          "(pass --reference CLIP)")
-    env = make_vec_env(policy.train_cfg.task, list(library.references), 1, str(torch_device), overrides,
-                       evaluation=True, seed=seed)
+    clip = library.references[0]
+    clip_frames = clip.num_frames
+    if start_frame:
+        clip = clip.subclip(start_frame)
+    env = make_vec_env(policy.train_cfg.task, [clip], 1, str(torch_device), overrides, evaluation=True, seed=seed)
     vec = env.unwrapped
     obs, _ = vec.reset(seed=seed)
     has_objects = vec.tracking_state.objects is not None
@@ -111,7 +118,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     try:
         for _ in range(int(vec.motion.clip_length.max()) + 1):
             actions = policy.act(TensorDict(dict(obs), batch_size=[1], device=vec.device))
-            frame = int(vec.command.frame[0])  # the step's state is compared with this frame, then it advances
+            frame = start_frame + int(vec.command.frame[0])  # the step's state is compared with it, then it advances
             obs, _, terminated, truncated, info = vec.step(actions)
             s = vec.tracking_state
             cols["frame"].append(frame)
@@ -133,7 +140,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     finally:
         env.close()
     return EpisodeTrace(
-        checkpoint=str(ckpt.path), reference=str(reference), clip_frames=int(vec.motion.clip_length[0]),
+        checkpoint=str(ckpt.path), reference=str(reference), clip_frames=clip_frames, start_frame=start_frame,
         frame=cols["frame"], mpjpe_mm=cols["mpjpe"], anchor_lag_cm=cols["lag"],
         object_pos_error_cm=cols["pos"] if has_objects else None,
         object_height_error_cm=cols["height"] if has_objects else None,
@@ -177,8 +184,9 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
+    start = f", started at frame {trace.start_frame}" if trace.start_frame else ""
     fig.suptitle(f"{Path(trace.checkpoint).parent.name}/{Path(trace.checkpoint).name}: {end} at frame "
-                 f"{trace.frame[-1]}", fontsize=9)
+                 f"{trace.frame[-1]}{start}", fontsize=9)
     fig.tight_layout()
     return save_figure(fig, out_png)
 
@@ -187,6 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run_or_checkpoint", help="run folder (its latest checkpoint) or model_<it>.pt")
     parser.add_argument("--reference", help="clip to trace (default: the run's reference)")
+    parser.add_argument("--start-frame", type=int, default=0,
+                        help="start on this reference frame (the clip cut there; default: 0)")
     parser.add_argument("--device", default="cpu", help="torch/warp device (default: cpu)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--every", type=int, default=10, help="print every N-th step (default: 10)")
@@ -195,7 +205,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.every < 1:
         parser.error("--every must be >= 1")
-    trace = trace_episode(args.run_or_checkpoint, args.reference, args.device, args.seed)
+    if args.start_frame < 0:
+        parser.error("--start-frame must be >= 0")
+    trace = trace_episode(args.run_or_checkpoint, args.reference, args.device, args.seed, args.start_frame)
     print("\n".join(trace.rows(args.every)))
     end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")

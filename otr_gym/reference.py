@@ -230,6 +230,29 @@ class Reference:
         objects = [replace(o, pos_w=o.pos_w + offset) for o in self.objects]
         return replace(self, joint_pos=joint_pos, body_pos_w=self.body_pos_w + offset, objects=objects)
 
+    def subclip(self, start: int, stop: int | None = None) -> Reference:
+        """Frames ``start`` … ``stop − 1`` (``stop`` None: to the end) of every time series:
+        robot, objects and contact annotations; meshes, names and fps unchanged. The source
+        stays (terrain and clip-list options keep applying); ``metadata["subclip"]`` records
+        [start, stop] in the original numbering. A range outside the clip, or shorter than two
+        frames, raises naming the source."""
+        n = self.num_frames
+        stop = n if stop is None else stop
+        if not 0 <= start < stop <= n or stop - start < 2:
+            raise InvalidReferenceError(f"{self.source}: frames {start}:{stop} are not a range of at least 2 of "
+                                        f"its {n} frames")
+        s = slice(start, stop)
+        objects = [replace(o, pos_w=o.pos_w[s], quat_w=o.quat_w[s], lin_vel_w=o.lin_vel_w[s],
+                           ang_vel_w=o.ang_vel_w[s]) for o in self.objects]
+        contacts = None
+        if self.contacts is not None:
+            c = self.contacts
+            contacts = replace(c, distance=c.distance[s], witness_c=None if c.witness_c is None else c.witness_c[s])
+        return replace(self, joint_pos=self.joint_pos[s], joint_vel=self.joint_vel[s], body_pos_w=self.body_pos_w[s],
+                       body_quat_w=self.body_quat_w[s], body_lin_vel_w=self.body_lin_vel_w[s],
+                       body_ang_vel_w=self.body_ang_vel_w[s], objects=objects, contacts=contacts,
+                       metadata={**self.metadata, "subclip": [int(start), int(stop)]})
+
     def resampled(self, fps: float) -> Reference:
         """Resample to ``fps`` (linear for positions and joints, slerp for quaternions);
         velocities are recomputed by finite differences. Contacts use the nearest frame."""

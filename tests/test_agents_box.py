@@ -17,6 +17,7 @@ from agents.export import export_onnx, read_metadata
 from agents.plots import read_scalars
 from agents.train import parse_sets
 from otr_gym import cli
+from otr_gym.reference import Reference
 
 
 @pytest.fixture(scope="module")
@@ -103,3 +104,18 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["mpjpe_mm"] == trace.mpjpe_mm and saved["steps"] == trace.steps
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_trace_from_a_later_frame_is_the_trace_of_the_clip_cut_there(box_run, box_reference, tmp_path, capsys):
+    k = 12
+    whole = Reference.load(box_reference)
+    later = trace_episode(box_run, device="cpu", start_frame=k)
+    on_cut = trace_episode(box_run, reference=whole.subclip(k).save(tmp_path / "cut.npz"), device="cpu")
+    assert later.start_frame == k and later.clip_frames == whole.num_frames
+    assert later.frame == [k + f for f in on_cut.frame] and later.frame[0] == k + 1  # the whole clip's numbering
+    assert later.mpjpe_mm == pytest.approx(on_cut.mpjpe_mm, rel=1e-6)
+    assert later.object_pos_error_cm == pytest.approx(on_cut.object_pos_error_cm, rel=1e-6)
+    assert later.ended_by == on_cut.ended_by and later.success == on_cut.success
+    with pytest.raises(SystemExit):
+        episode_trace.main([str(box_run), "--start-frame", "-1"])
+    assert "--start-frame must be >= 0" in capsys.readouterr().err

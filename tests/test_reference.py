@@ -113,6 +113,24 @@ def test_resampling_to_50_fps_keeps_the_motion(reference):
     assert np.abs(back.root_pos_w - reference.root_pos_w[: back.num_frames]).max() < 5e-3
 
 
+def test_a_subclip_holds_the_frames_of_every_series_and_saves_valid(reference, tmp_path):
+    cut = reference.subclip(10, 40)
+    assert cut.num_frames == 30 and cut.fps == reference.fps
+    whole, part = reference.to_arrays(), cut.to_arrays()
+    for key, value in whole.items():
+        if value.ndim and value.shape[0] == reference.num_frames:  # time series: frames 10..39
+            assert np.array_equal(part[key], value[10:40]), key
+    assert np.array_equal(cut.objects[0].mesh_vertices, reference.objects[0].mesh_vertices)
+    assert cut.contacts.witness_c.shape[0] == 30 and cut.metadata["subclip"] == [10, 40]
+    assert cut.source == reference.source  # terrain and clip-list options keep applying
+    back = Reference.load(cut.save(tmp_path / "cut.npz"))  # validates: every series 30 frames
+    assert np.array_equal(back.root_pos_w, reference.root_pos_w[10:40])
+    assert reference.subclip(55).num_frames == 5  # to the end
+    for start, stop in ((-1, None), (59, None), (30, 30), (10, 61)):
+        with pytest.raises(InvalidReferenceError, match=f"frames {start}:.*of its 60 frames"):
+            reference.subclip(start, stop)
+
+
 def _write(tmp_path: Path, arrays: dict, name: str = "bad.npz") -> Path:
     path = tmp_path / name
     np.savez(path, **arrays)
