@@ -207,7 +207,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--every must be >= 1")
     if args.start_frame < 0:
         parser.error("--start-frame must be >= 0")
-    trace = trace_episode(args.run_or_checkpoint, args.reference, args.device, args.seed, args.start_frame)
+    try:
+        trace = trace_episode(args.run_or_checkpoint, args.reference, args.device, args.seed, args.start_frame)
+    except ValueError as exc:  # a library given for one clip, a start frame beyond the clip: named, no traceback
+        parser.error(str(exc))
     print("\n".join(trace.rows(args.every)))
     end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -119,3 +120,7 @@ def test_a_trace_from_a_later_frame_is_the_trace_of_the_clip_cut_there(box_run, 
     with pytest.raises(SystemExit):
         episode_trace.main([str(box_run), "--start-frame", "-1"])
     assert "--start-frame must be >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        episode_trace.main([str(box_run), "--start-frame", str(whole.num_frames - 1)])
+    err = capsys.readouterr().err  # names the clip's file and the range
+    assert Path(box_reference).name in err and f"frames {whole.num_frames - 1}:{whole.num_frames} are not" in err
