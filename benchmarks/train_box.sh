@@ -12,8 +12,9 @@
 # builds the env and compiles MuJoCo-Warp's kernels, 2-3 min), then MINUTES=8 twice more, then
 # `report` (same OUT_DIR and RUNS_DIR each time: the run folder survives between commands while
 # the machine stays warm). To go on on another machine: `carry` writes OUT_DIR/run.tar (RUNS_DIR's
-# LATEST_RUN and the run folder with only its latest checkpoint, ~10 MB); `tar xf run.tar` in the
-# repository root there, then `train` with the same RUNS_DIR resumes.
+# LATEST_RUN and the run folder with only its latest checkpoint, ~10 MB; benchmarks/carry_run.sh);
+# `tar xf run.tar` in the repository root there (`-C /` for an absolute RUNS_DIR such as
+# /tmp/box/runs), then `train` with the same RUNS_DIR resumes.
 #
 # Knobs (environment):
 #   NUM_ENVS (4096), MINUTES (8), DEVICE (cuda), SAVE_INTERVAL (250), SEED (42),
@@ -121,12 +122,7 @@ prune() {
 }
 
 carry() {  # a device command returns files of at most 16 MiB: the latest checkpoint only
-  [ -f "$latest" ] || { echo "$latest: no trained run (run the train stage first)" >&2; exit 1; }
-  local run last
-  run=$(cat "$latest")
-  last=$("$py" -m agents.runs latest "$run") || exit 1
-  tar cf "$out/run.tar" --exclude='*.pt' --exclude='*.onnx' "$latest" "$run" && tar rf "$out/run.tar" "$last" || exit 1
-  echo "$out/run.tar: $run, checkpoint $(basename "$last"), $(du -h "$out/run.tar" | cut -f1)"
+  "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar" "$py"
 }
 
 case "$stage" in

@@ -100,12 +100,14 @@ def test_pack_writes_one_checkpoint_tar_per_resumable_run(tmp_path):
     assert not [n for n in names if n.endswith(".pt")]
 
 
-def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path):
-    """`train_box.sh carry` writes what resuming on another machine needs: RUNS_DIR's LATEST_RUN and
-    the run folder with its highest-numbered checkpoint (by number: 1250 after 975, which a sort of
-    the names would pick), its config and event files, no other checkpoint. `prune` keeps the same
-    latest checkpoint; a run without checkpoints is refused by name."""
-    carry = Path(__file__).resolve().parents[1] / "benchmarks" / "train_box.sh"
+@pytest.mark.parametrize("script, args", [("train_box.sh", ["out", "ref.npz"]), ("train_library.sh", ["out"])])
+def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path, script, args):
+    """`carry` (both recipes, through carry_run.sh) writes what resuming on another machine needs:
+    RUNS_DIR's LATEST_RUN and the run folder with its highest-numbered checkpoint (by number: 1250
+    after 975, which a sort of the names would pick), its config and event files, no other
+    checkpoint. The box recipe's `prune` keeps the same latest checkpoint; a run without
+    checkpoints is refused by name."""
+    carry = Path(__file__).resolve().parents[1] / "benchmarks" / script
     run = tmp_path / "runs" / "x" / "OTR-G1-BoxTrack-v0_sub3_largebox_003_20261127-022526"
     run.mkdir(parents=True)
     for it in (25, 975, 1250):
@@ -115,7 +117,7 @@ def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path):
     (run.parent / "LATEST_RUN").write_text(f"runs/x/{run.name}\n")
 
     def stage(name: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["bash", str(carry), name, "out", "ref.npz"], cwd=tmp_path, capture_output=True,
+        return subprocess.run(["bash", str(carry), name, *args], cwd=tmp_path, capture_output=True,
                               text=True, env={**os.environ, "RUNS_DIR": "runs/x"}, timeout=60)
 
     result = stage("carry")
@@ -127,11 +129,13 @@ def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path):
     assert files == ["runs/x/LATEST_RUN", f"{folder}/config.yaml", f"{folder}/events.out.tfevents.1",
                      f"{folder}/model_1250.pt"]
 
-    (run / "model_499.pt").write_bytes(b"x")
-    assert stage("prune").returncode == 0  # keeps the latest checkpoint and every 500th
-    assert sorted(p.name for p in run.glob("model_*.pt")) == ["model_1250.pt", "model_499.pt"]
+    assert "extract in the repository root" in result.stdout  # RUNS_DIR is relative here
 
-    for it in (499, 1250):
-        (run / f"model_{it}.pt").unlink()
+    if script == "train_box.sh":
+        (run / "model_499.pt").write_bytes(b"x")
+        assert stage("prune").returncode == 0  # keeps the latest checkpoint and every 500th
+        assert sorted(p.name for p in run.glob("model_*.pt")) == ["model_1250.pt", "model_499.pt"]
+    for f in run.glob("model_*.pt"):
+        f.unlink()
     result = stage("carry")
     assert result.returncode == 1 and "holds no checkpoint" in result.stderr and run.name in result.stderr
