@@ -14,8 +14,8 @@ py=${3:-python3}
 run=$(cat "$latest")
 last=$("$py" -m agents.runs latest "$run")
 mkdir -p "$(dirname "$tar_out")"
-tar cf "$tar_out" --exclude='*.pt' --exclude='*.onnx' "$latest" "$run" 2>/dev/null
-tar rf "$tar_out" "$last" 2>/dev/null
+tar cf "$tar_out" --exclude='*.pt' --exclude='*.onnx' "$latest" "$run"
+tar rf "$tar_out" "$last"
 where="in the repository root"
 case "$run" in /*) where="with tar xf $(basename "$tar_out") -C /" ;; esac
 echo "$tar_out: $run, checkpoint $(basename "$last"), $(du -h "$tar_out" | cut -f1); extract $where, then train resumes"

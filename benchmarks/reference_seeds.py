@@ -5,8 +5,9 @@ back under the training's object randomisation (``envs.kinematic_playback``, as
 
 The kinematic playback of one box reference is steady across object draws but not across
 references: on OMOMO ``sub3_largebox_003`` the seed of the probe sampling alone decides between
-a box carried 4.5 cm from its reference in every draw and one lost in every draw (docs/results/box.md). A perfect tracker of a reference whose box is lost cannot finish the clip,
-so this is a check worth a few CPU minutes before a GPU run. It is not a predictor of the
+a box carried 4.5 cm from its reference in every draw and one lost in every draw
+(docs/results/box.md). A perfect tracker of a reference whose box is lost cannot finish the
+clip, so this is a check worth a few CPU minutes before a GPU run. It is not a predictor of the
 trained box error: a policy trained 30 minutes on seed 4 (playback 4.7 cm) ended 1 cm below one
 trained on seed 0 (playback 10.0 cm), 8.2 against 9.2 cm from frame 0.
 

@@ -86,6 +86,11 @@ class ContactAnnotations:
         """(T, U, C) boolean: (d)₊ < threshold (the paper's ε_eval = 20 mm by default)."""
         return np.maximum(self.distance, 0.0) < threshold_m
 
+    def at(self, frames) -> ContactAnnotations:
+        """The annotations of ``frames`` (a slice or an index array into the time axis)."""
+        return replace(self, distance=self.distance[frames],
+                       witness_c=None if self.witness_c is None else self.witness_c[frames])
+
 
 @dataclass
 class Reference:
@@ -244,10 +249,7 @@ class Reference:
         s = slice(start, stop)
         objects = [replace(o, pos_w=o.pos_w[s], quat_w=o.quat_w[s], lin_vel_w=o.lin_vel_w[s],
                            ang_vel_w=o.ang_vel_w[s]) for o in self.objects]
-        contacts = None
-        if self.contacts is not None:
-            c = self.contacts
-            contacts = replace(c, distance=c.distance[s], witness_c=None if c.witness_c is None else c.witness_c[s])
+        contacts = None if self.contacts is None else self.contacts.at(s)
         return replace(self, joint_pos=self.joint_pos[s], joint_vel=self.joint_vel[s], body_pos_w=self.body_pos_w[s],
                        body_quat_w=self.body_quat_w[s], body_lin_vel_w=self.body_lin_vel_w[s],
                        body_ang_vel_w=self.body_ang_vel_w[s], objects=objects, contacts=contacts,
@@ -277,11 +279,7 @@ class Reference:
         jp[:, 3:7] = slerp(self.joint_pos[:, 3:7])
         objects = [replace(o, pos_w=lerp(o.pos_w), quat_w=slerp(o.quat_w)) for o in self.objects]
         nearest = np.clip(np.rint(t_dst * self.fps).astype(int), 0, self.num_frames - 1)
-        contacts = None
-        if self.contacts is not None:
-            c = self.contacts
-            contacts = replace(c, distance=c.distance[nearest],
-                               witness_c=None if c.witness_c is None else c.witness_c[nearest])
+        contacts = None if self.contacts is None else self.contacts.at(nearest)
         out = replace(self, fps=float(fps), joint_pos=jp, body_pos_w=lerp(self.body_pos_w),
                       body_quat_w=slerp(self.body_quat_w), objects=objects, contacts=contacts)
         return out.with_recomputed_velocities()
