@@ -6,14 +6,14 @@
 #   benchmarks/train_box.sh report OUT_DIR REFERENCE   # curves, evaluation, ONNX, video of that run
 #   benchmarks/train_box.sh all    OUT_DIR REFERENCE   # train, then report
 #   benchmarks/train_box.sh prune  OUT_DIR REFERENCE   # keep the latest checkpoint and every 500th
-#   benchmarks/train_box.sh carry  OUT_DIR REFERENCE   # OUT_DIR/run.tar: the run to resume on another machine
+#   benchmarks/train_box.sh carry  OUT_DIR REFERENCE   # OUT_DIR/run.tar.gz: the run to resume on another machine
 #
 # A 30-minute run under a 10-minute-per-command limit: `train` with MINUTES=7 (the first call also
 # builds the env and compiles MuJoCo-Warp's kernels, 2-3 min), then MINUTES=8 twice more, then
 # `report` (same OUT_DIR and RUNS_DIR each time: the run folder survives between commands while
-# the machine stays warm). To go on on another machine: `carry` writes OUT_DIR/run.tar (RUNS_DIR's
-# LATEST_RUN and the run folder with only its latest checkpoint, ~10 MB; benchmarks/carry_run.sh);
-# `tar xf run.tar` in the repository root there (`-C /` for an absolute RUNS_DIR such as
+# the machine stays warm). To go on on another machine: `carry` writes OUT_DIR/run.tar.gz (RUNS_DIR's
+# LATEST_RUN and the run folder with only its latest checkpoint; benchmarks/carry_run.sh);
+# `tar xf run.tar.gz` in the repository root there (`-C /` for an absolute RUNS_DIR such as
 # /tmp/box/runs), then `train` with the same RUNS_DIR resumes.
 #
 # Knobs (environment):
@@ -122,7 +122,7 @@ prune() {
 }
 
 carry() {  # a device command returns files of at most 16 MiB: the latest checkpoint only
-  "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar" "$py"
+  "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar.gz" "$py"
 }
 
 case "$stage" in

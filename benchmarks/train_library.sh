@@ -6,7 +6,7 @@
 #   benchmarks/train_library.sh train   OUT_DIR REFERENCE...    # MINUTES more learning (resumes OUT_DIR's run)
 #   benchmarks/train_library.sh report  OUT_DIR REFERENCE...    # curves (overall + per clip), evaluation, ONNX
 #   benchmarks/train_library.sh scaling OUT_DIR REFERENCE...    # 1 vs GPUS GPUs: env steps/s, iteration time
-#   benchmarks/train_library.sh carry   OUT_DIR                 # OUT_DIR/run.tar: the run with its latest checkpoint
+#   benchmarks/train_library.sh carry   OUT_DIR                 # OUT_DIR/run.tar.gz: the run with its latest checkpoint
 #
 # REFERENCE: one clip (.npz), a folder of clips, or a clip list (.txt); several are one library.
 #
@@ -32,8 +32,8 @@
 #       benchmarks/train_library.sh report out/jog REFS/smplh_walk_jog_turn.npz
 # (b) The library: the same with REFS_DIR as REFERENCE (30 minutes: MINUTES=7, then 8 three times).
 #     On to another machine, or back from one (a device command returns files of at most 16 MiB):
-#     `carry` writes OUT_DIR/run.tar (RUNS_DIR's LATEST_RUN, the run folder without checkpoints,
-#     its latest checkpoint; ~14 MB for the 8-clip library); `tar xf` it in the repository root.
+#     `carry` writes OUT_DIR/run.tar.gz (RUNS_DIR's LATEST_RUN, the run folder without checkpoints,
+#     its latest checkpoint; 7.7 MB for the 8-clip library at 30 min); `tar xf` it in the repository root.
 # (c) Issue 16 (a 2-GPU host): benchmarks/train_library.sh scaling out/scaling REFS/smplh_walk_jog_turn.npz
 #
 # Knobs (environment): NUM_ENVS (4096, per GPU), MINUTES (8), GPUS (1 for train; 2 for scaling),
@@ -217,6 +217,6 @@ case "$stage" in
   train) train ;;
   report) report ;;
   scaling) scaling ;;
-  carry) "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar" "$py" ;;
+  carry) "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar.gz" "$py" ;;
   *) echo "unknown stage '$stage' ($usage)" >&2; exit 2 ;;
 esac

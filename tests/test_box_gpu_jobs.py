@@ -123,7 +123,9 @@ def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path, sc
     result = stage("carry")
     assert result.returncode == 0, result.stderr
     assert "checkpoint model_1250.pt" in result.stdout
-    with tarfile.open(tmp_path / "out" / "run.tar") as tar:
+    packed = tmp_path / "out" / "run.tar.gz"
+    assert packed.read_bytes()[:2] == b"\x1f\x8b"  # gzipped: the event files grow with the run
+    with tarfile.open(packed) as tar:
         files = sorted(m.name for m in tar.getmembers() if m.isfile())
     folder = f"runs/x/{run.name}"
     assert files == ["runs/x/LATEST_RUN", f"{folder}/config.yaml", f"{folder}/events.out.tfevents.1",
