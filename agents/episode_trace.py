@@ -6,7 +6,12 @@ records after every step the reference frame, the root-relative MPJPE and each t
 share of it (which bodies carry the error, and when), how far the robot's
 anchor (torso) is from the reference anchor horizontally, and for the moving objects (box
 task) the position error, the height offset from the reference (negative: below it) and the
-orientation error, each a mean over the moving objects. It names what ended the episode:
+orientation error, each a mean over the moving objects, and whether a robot–object proximity
+window of the reference is open (the gates of the contact rewards: a hand near an object, from
+the reach to the release). The object error is then also split into the phases before the
+first window, in a window, between windows and after the last one, which tells a policy that
+carries well but sets the object down off its mark from one that loses it in the hands.
+It names what ended the episode:
 the termination terms that fired, or the clip's end. ``--start-frame K`` starts the episode
 on the reference's frame K instead (the clip cut there, ``Reference.subclip``): whether a
 failure comes from drift carried from the start or from the passage itself.
@@ -61,6 +66,7 @@ class EpisodeTrace:
     body_names: list[str] | None = None  # the tracked bodies, in the order of body_error_mm's rows
     body_error_mm: list[list[float]] | None = None  # per step, per body: root-relative error (mm)
     start_frame: int = 0  # the reference frame the episode started on
+    object_in_window: list[bool] | None = None  # per step: a robot–object window of the reference is open
 
     @property
     def steps(self) -> int:
@@ -73,6 +79,29 @@ class EpisodeTrace:
             return []
         means = np.asarray(self.body_error_mm).mean(0)
         return sorted(zip(self.body_names, means.tolist()), key=lambda kv: -kv[1])
+
+    def object_phases(self) -> list[tuple[str, int, float, float]]:
+        """(phase, steps, mean object error cm, share of the episode's summed error) for the
+        phases present, in clip order: ``before`` (the reference's first robot–object window),
+        ``in window``, ``between windows``, ``after`` (its last window: the object set down).
+        Empty on a task without objects."""
+        if self.object_pos_error_cm is None or self.object_in_window is None:
+            return []
+        error = np.asarray(self.object_pos_error_cm)
+        inside = np.asarray(self.object_in_window, dtype=bool)
+        phase = np.full(inside.shape, "in window", dtype=object)
+        if inside.any():
+            first, last = np.flatnonzero(inside)[[0, -1]]
+            index = np.arange(inside.size)
+            phase[~inside & (index < first)] = "before"
+            phase[~inside & (index > last)] = "after"
+            phase[~inside & (index > first) & (index < last)] = "between windows"
+        else:
+            phase[:] = "before"
+        total = float(error.sum()) or 1.0
+        return [(name, int((phase == name).sum()), float(error[phase == name].mean()),
+                 float(error[phase == name].sum()) / total)
+                for name in ("before", "in window", "between windows", "after") if (phase == name).any()]
 
     def rows(self, every: int = 10) -> list[str]:
         """A Markdown table: every ``every``-th step and the last."""
@@ -113,7 +142,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     has_objects = vec.tracking_state.objects is not None
     term = vec.task.cfg.terminations.get("object_pos")
     threshold = term.params.get("threshold_m") if term is not None else None
-    cols: dict[str, list] = {k: [] for k in ("frame", "mpjpe", "bodies", "lag", "pos", "height", "ori")}
+    cols: dict[str, list] = {k: [] for k in ("frame", "mpjpe", "bodies", "lag", "pos", "height", "ori", "window")}
     ended_by, success = [], False
     try:
         for _ in range(int(vec.motion.clip_length.max()) + 1):
@@ -131,6 +160,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
                 cols["pos"].append(100.0 * float(object_position_error_m(s)[0].mean()))
                 cols["height"].append(100.0 * float((o.pos_w[0, :, 2] - o.ref_pos_w[0, :, 2]).mean()))
                 cols["ori"].append(float(torch.rad2deg(object_orientation_error_rad(s)[0]).mean()))
+                cols["window"].append(bool((o.hand_gate[0] > 0).any()))
             if bool(terminated[0]) or bool(truncated[0]):
                 ended_by = [k for k, v in info["terminations"].items() if bool(v[0])]
                 success = bool(info["success"][0])
@@ -145,6 +175,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
         object_pos_error_cm=cols["pos"] if has_objects else None,
         object_height_error_cm=cols["height"] if has_objects else None,
         object_ori_error_deg=cols["ori"] if has_objects else None,
+        object_in_window=cols["window"] if has_objects else None,
         ended_by=ended_by, success=success,
         object_termination_cm=None if threshold is None else 100.0 * float(threshold),
         body_names=list(vec.tracking_state.body_names), body_error_mm=cols["bodies"])
@@ -153,7 +184,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
 def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
     """Panels against the reference frame: MPJPE, the three bodies with the largest mean error
     and anchor lag; for objects, position and height error (with the object termination's
-    distance) and orientation error."""
+    distance, the reference's robot–object windows shaded) and orientation error."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -175,6 +206,11 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
         axes[1].plot(frames, trace.object_height_error_cm, lw=1.1, label="height (object − reference)")
         if trace.object_termination_cm is not None:
             axes[1].axhline(trace.object_termination_cm, color="k", lw=0.8, ls="--", label="object termination")
+        inside = np.asarray(trace.object_in_window or [], dtype=bool)
+        edges = np.flatnonzero(np.diff(np.concatenate([[False], inside, [False]]).astype(int)))
+        for k, (a, b) in enumerate(zip(edges[::2], edges[1::2], strict=True)):  # the windows, shaded
+            axes[1].axvspan(frames[a] - 0.5, frames[b - 1] + 0.5, color="0.85", zorder=0,
+                            label="robot–object window" if k == 0 else None)
         axes[1].set_title("object (cm)", fontsize=9)
         axes[2].plot(frames, trace.object_ori_error_deg, lw=1.1)
         axes[2].set_title("object orientation error (deg)", fontsize=9)
@@ -216,6 +252,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")
     print("root-relative error per body, mean over the episode (mm): "
           + ", ".join(f"{name} {mm:.1f}" for name, mm in trace.body_means_mm()))
+    if trace.object_phases():
+        print("object error by the reference's robot–object windows (cm, steps, share of the error): "
+              + ", ".join(f"{name} {cm:.1f} ({n} steps, {100 * share:.0f} %)"
+                          for name, n, cm, share in trace.object_phases()))
     if args.png:
         print(f"wrote {plot_trace(trace, args.png)}")
     if args.json:

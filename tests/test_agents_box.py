@@ -12,7 +12,7 @@ import torch
 
 from agents import episode_trace, runs
 from agents.config import train_config_from_dict
-from agents.episode_trace import CLIP_END, trace_episode
+from agents.episode_trace import CLIP_END, EpisodeTrace, trace_episode
 from agents.evaluate import evaluate
 from agents.export import export_onnx, read_metadata
 from agents.plots import read_scalars
@@ -124,3 +124,40 @@ def test_a_trace_from_a_later_frame_is_the_trace_of_the_clip_cut_there(box_run, 
         episode_trace.main([str(box_run), "--start-frame", str(whole.num_frames - 1)])
     err = capsys.readouterr().err  # names the clip's file and the range
     assert Path(box_reference).name in err and f"frames {whole.num_frames - 1}:{whole.num_frames} are not" in err
+
+
+def test_a_trace_marks_the_robot_object_windows_and_splits_the_object_error_by_them(box_run, tmp_path, capsys):
+    """From frame 55 of the test clip the episode runs into its left-hand window [60, 100) (the
+    annotations'): steps before frame 60 are 'before', later ones 'in window', until the falling
+    box ends the episode; the phase means partition the episode's object error."""
+    trace = trace_episode(box_run, device="cpu", start_frame=55)
+    frames = np.asarray(trace.frame)
+    assert frames[0] < 60 < frames[-1], frames
+    assert trace.object_in_window == [60 <= f < 100 for f in trace.frame]
+    phases = trace.object_phases()
+    assert [name for name, *_ in phases] == ["before", "in window"]
+    error = np.asarray(trace.object_pos_error_cm)
+    (_, n_before, before_cm, before_share), (_, n_in, in_cm, in_share) = phases
+    assert n_before == int((frames < 60).sum()) and n_before + n_in == trace.steps
+    assert before_cm == pytest.approx(error[frames < 60].mean()) and in_cm == pytest.approx(error[frames >= 60].mean())
+    assert before_share + in_share == pytest.approx(1.0)
+    assert episode_trace.main([str(box_run), "--start-frame", "55", "--png", str(tmp_path / "t.png")]) == 0
+    out = capsys.readouterr().out
+    assert f"before {before_cm:.1f} ({n_before} steps" in out and f"in window {in_cm:.1f} ({n_in} steps" in out
+    assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_object_phases_name_every_stretch_in_clip_order():
+    inside = [False, True, True, False, True, False, False]
+    error = [1.0, 2.0, 4.0, 6.0, 2.0, 10.0, 12.0]
+    trace = EpisodeTrace(checkpoint="c", reference="r", clip_frames=8, frame=list(range(1, 8)), mpjpe_mm=[0.0] * 7,
+                         anchor_lag_cm=[0.0] * 7, object_pos_error_cm=error, object_height_error_cm=[0.0] * 7,
+                         object_ori_error_deg=[0.0] * 7, ended_by=[CLIP_END], success=True, object_in_window=inside)
+    assert trace.object_phases() == [("before", 1, 1.0, pytest.approx(1 / 37)),
+                                     ("in window", 3, pytest.approx(8 / 3), pytest.approx(8 / 37)),
+                                     ("between windows", 1, 6.0, pytest.approx(6 / 37)),
+                                     ("after", 2, 11.0, pytest.approx(22 / 37))]
+    trace.object_in_window = [False] * 7  # no window at all: one phase
+    assert [p[:2] for p in trace.object_phases()] == [("before", 7)]
+    trace.object_pos_error_cm = trace.object_in_window = None  # no objects
+    assert trace.object_phases() == []
