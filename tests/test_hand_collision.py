@@ -87,8 +87,9 @@ def test_reference_hands_lift_the_omomo_large_box_past_1_m_with_under_4_cm_slip(
     """Kinematic playback: robot put on the reference every step, only the box simulated.
 
     Our reference of this commit, not a stored one: the reference of c1c5619 (the G1's forearms
-    held off the box, see README *Units judged by their whole surface*) let the box slide out of
-    the hands at frame 95, ending the playback under the 25 cm object termination."""
+    held off the box, see docs/results/retarget_fidelity.md, *Units judged by their whole
+    surface*) let the box slide out of the hands at frame 95, ending the playback under the 25 cm
+    object termination."""
     from envs.box import make_box_task
     from otr_gym import robot
     from otr_gym.rotations import quat_apply_inverse
