@@ -61,16 +61,27 @@ def learning_minutes(scalars: dict[str, tuple[list[int], list[float]]]) -> tuple
     return list(its), (np.cumsum(seconds) / 60.0).tolist()
 
 
-def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str] | None = None) -> Path:
+#: The x axes ``plot_runs`` can draw against.
+RUN_AXES = ("minutes", "iteration")
+
+
+def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str] | None = None,
+              x: str = "minutes") -> Path:
     """Several runs side by side: one panel per ``TRAINING_PANELS`` curve that any run has, one
-    line per run, against learning time (minutes), so runs that shared a GPU or ran at other
-    speeds compare at equal budgets."""
+    line per run, against learning time (``x="minutes"``), so runs that shared a GPU or ran at
+    other speeds compare at equal budgets, or against the PPO iteration (``x="iteration"``),
+    which takes the machine's speed out of a comparison of recipes run on different hosts."""
     labels = labels or [Path(r).name for r in run_dirs]
     if len(labels) != len(run_dirs):
         raise ValueError(f"{len(labels)} labels for {len(run_dirs)} runs")
+    if x not in RUN_AXES:
+        raise ValueError(f"x axis {x!r}: one of {', '.join(RUN_AXES)}")
     curves = []
     for run in run_dirs:
         scalars = read_scalars(run)
+        if x == "iteration":
+            curves.append((scalars, None))
+            continue
         try:
             its, minutes = learning_minutes(scalars)
         except runs.RunError as e:
@@ -83,9 +94,10 @@ def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str]
         for (scalars, minutes), label in zip(curves, labels, strict=True):
             if tag in scalars:
                 its, values = scalars[tag]
-                ax.plot([minutes.get(it, float("nan")) for it in its], values, lw=1.1, label=label)
+                xs = its if minutes is None else [minutes.get(it, float("nan")) for it in its]
+                ax.plot(xs, values, lw=1.1, label=label)
         ax.set_title(title, fontsize=10)
-        ax.set_xlabel("learning time (min)")
+        ax.set_xlabel("learning time (min)" if x == "minutes" else "iteration")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=7)
     fig.tight_layout()
@@ -205,10 +217,12 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m agents.plots",
                                      description="training curves (PNG) and summary (JSON) of a run; with several "
-                                     "runs, their curves side by side against learning time")
+                                     "runs, their curves side by side against learning time or iteration")
     parser.add_argument("run", nargs="+", help="run folder(s)")
     parser.add_argument("--png", required=True, help="output PNG of the training curves")
     parser.add_argument("--labels", nargs="+", help="with several runs: their legend labels (default: folder names)")
+    parser.add_argument("--x", choices=RUN_AXES, default="minutes",
+                        help="with several runs: draw against learning time (default) or PPO iteration")
     parser.add_argument("--json", help="output JSON summary (iterations, median FPS, last values); one run only")
     parser.add_argument("--clips-png", help="output PNG of the per-clip curves (success, MPJPE, segment length, "
                         "start probability); one run only")
@@ -217,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.json or args.clips_png:
             parser.error("--json and --clips-png take one run")
         try:
-            print(f"wrote {plot_runs(args.run, args.png, args.labels)}")
+            print(f"wrote {plot_runs(args.run, args.png, args.labels, args.x)}")
         except ValueError as e:
             parser.error(str(e))
         return 0

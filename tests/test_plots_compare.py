@@ -70,3 +70,29 @@ def test_the_cli_compares_several_runs_and_keeps_json_to_one(tmp_path, capsys):
     with pytest.raises(SystemExit):
         plots.main([str(a), str(b), "--png", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")])
     assert "one run" in capsys.readouterr().err
+
+
+def test_runs_are_drawn_against_the_iteration_when_asked(tmp_path, monkeypatch):
+    fast = _fake_run(tmp_path / "fast", [6.0] * 4, [0.0] * 4, [0.1, 0.2, 0.3, 0.4])
+    untimed = tmp_path / "untimed"  # no timing curves: fine on the iteration axis
+    untimed.mkdir()
+    with SummaryWriter(str(untimed)) as w:
+        for it, s in enumerate([0.0, 0.5]):
+            w.add_scalar("metric/success_rate", s, it)
+    drawn = {}
+    real_save = plots.save_figure
+
+    def capture(fig, out_png):
+        ax = fig.axes[0]
+        drawn["xlabel"] = ax.get_xlabel()
+        drawn["lines"] = {ln.get_label(): list(ln.get_xdata()) for ln in ax.get_lines()}
+        return real_save(fig, out_png)
+
+    monkeypatch.setattr(plots, "save_figure", capture)
+    plots.plot_runs([fast, untimed], tmp_path / "it.png", labels=["fast", "untimed"], x="iteration")
+    assert drawn["xlabel"] == "iteration"
+    assert drawn["lines"] == {"fast": [0, 1, 2, 3], "untimed": [0, 1]}
+    with pytest.raises(ValueError, match="x axis 'steps'"):
+        plots.plot_runs([fast], tmp_path / "z.png", x="steps")
+    assert plots.main([str(fast), str(untimed), "--x", "iteration", "--png", str(tmp_path / "cli.png")]) == 0
+    assert drawn["lines"]["untimed"] == [0, 1]
