@@ -10,11 +10,11 @@ orientation error, each a mean over the moving objects, and whether a robot–ob
 window of the reference is open (the gates of the contact rewards: a hand near an object, from
 the reach to the release). The object error is then also split into the phases before the
 first window, in a window, between windows and after the last one, which tells a policy that
-carries well but sets the object down off its mark from one that loses it in the hands.
-It names what ended the episode:
-the termination terms that fired, or the clip's end. ``--start-frame K`` starts the episode
-on the reference's frame K instead (the clip cut there, ``Reference.subclip``): whether a
-failure comes from drift carried from the start or from the passage itself.
+carries well but sets the object down off its mark from one that loses it in the hands. It
+names what ended the episode: the termination terms that fired, or the clip's end.
+``--start-frame K`` starts the episode on the reference's frame K instead (the clip cut there,
+``Reference.subclip``): whether a failure comes from drift carried from the start or from the
+passage itself.
 
     python -m agents.episode_trace RUN_OR_CHECKPOINT [--reference REF] [--start-frame K] \\
         [--device cpu] [--every 10] [--png trace.png] [--json trace.json]
@@ -41,6 +41,7 @@ from envs.mdp.metrics import (
     object_orientation_error_rad,
     object_position_error_m,
 )
+from otr_gym.flags import true_intervals
 from otr_gym.io import save_figure, write_json
 
 #: What ``ended_by`` says for an episode that reached its clip's last frame.
@@ -206,9 +207,7 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
         axes[1].plot(frames, trace.object_height_error_cm, lw=1.1, label="height (object − reference)")
         if trace.object_termination_cm is not None:
             axes[1].axhline(trace.object_termination_cm, color="k", lw=0.8, ls="--", label="object termination")
-        inside = np.asarray(trace.object_in_window or [], dtype=bool)
-        edges = np.flatnonzero(np.diff(np.concatenate([[False], inside, [False]]).astype(int)))
-        for k, (a, b) in enumerate(zip(edges[::2], edges[1::2], strict=True)):  # the windows, shaded
+        for k, (a, b) in enumerate(true_intervals(trace.object_in_window or [])):  # the windows, shaded
             axes[1].axvspan(frames[a] - 0.5, frames[b - 1] + 0.5, color="0.85", zorder=0,
                             label="robot–object window" if k == 0 else None)
         axes[1].set_title("object (cm)", fontsize=9)
@@ -252,10 +251,10 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")
     print("root-relative error per body, mean over the episode (mm): "
           + ", ".join(f"{name} {mm:.1f}" for name, mm in trace.body_means_mm()))
-    if trace.object_phases():
+    phases = trace.object_phases()
+    if phases:
         print("object error by the reference's robot–object windows (cm, steps, share of the error): "
-              + ", ".join(f"{name} {cm:.1f} ({n} steps, {100 * share:.0f} %)"
-                          for name, n, cm, share in trace.object_phases()))
+              + ", ".join(f"{name} {cm:.1f} ({n} steps, {100 * share:.0f} %)" for name, n, cm, share in phases))
     if args.png:
         print(f"wrote {plot_trace(trace, args.png)}")
     if args.json:

@@ -1,4 +1,5 @@
-"""Per-frame boolean flags (contact, stance, proximity windows): short breaks closed."""
+"""Per-frame boolean flags (contact, stance, proximity windows, flights): short breaks closed,
+runs of True as frame ranges."""
 
 from __future__ import annotations
 
@@ -20,3 +21,12 @@ def close_short_gaps(flags: np.ndarray, max_gap: int, closable: np.ndarray | Non
             if 1 < b - a <= max_gap + 1 and (allowed is None or allowed[a + 1:b, f].all()):
                 series[a + 1:b, f] = True
     return out
+
+
+def true_intervals(flags, gap: int = 0) -> list[tuple[int, int]]:
+    """[(start, stop)] half-open frame ranges of the runs of True in the 1-D ``flags``, in order;
+    runs separated by at most ``gap`` False frames are one (``close_short_gaps``)."""
+    flags = np.asarray(flags, dtype=bool)
+    closed = close_short_gaps(flags, gap) if flags.size else flags
+    edges = np.diff(np.concatenate([[0], closed.astype(np.int8), [0]]))
+    return [(int(a), int(b)) for a, b in zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True)]

@@ -64,6 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from otr_gym import robot
+from otr_gym.flags import true_intervals
 from otr_gym.robot_geometry import collision_capsules, posed_vertices, visual_meshes
 from otr_gym.rotations import quat_from_vector_pairs, quat_to_matrix, skew
 from retarget.evaluation.feet import least_moving_speed
@@ -495,16 +496,7 @@ def _stance_and_sliding(ref, cfg: FeasibilityCfg, ground: Ground) -> tuple[np.nd
 
 def _runs(flags: np.ndarray, gap: int = 0) -> list[tuple[int, int]]:
     """[(first, last)] of the runs of True in ``flags`` (runs closer than ``gap`` frames merged)."""
-    idx = np.flatnonzero(flags)
-    if idx.size == 0:
-        return []
-    out = [[idx[0], idx[0]]]
-    for i in idx[1:]:
-        if i - out[-1][1] <= gap + 1:
-            out[-1][1] = i
-        else:
-            out.append([i, i])
-    return [(int(a), int(b)) for a, b in out]
+    return [(a, b - 1) for a, b in true_intervals(flags, gap)]
 
 
 def format_report(r: FeasibilityReport, worst: int = 10) -> str:

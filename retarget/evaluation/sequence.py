@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from otr_gym import robot
+from otr_gym.flags import true_intervals
 from otr_gym.reference import Reference
 from otr_gym.robot_geometry import visual_meshes
 from retarget.demonstration import Demonstration
@@ -97,8 +98,7 @@ class SequenceResult:
 
 
 def _intervals(mask: np.ndarray) -> list[list[int]]:
-    edges = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return np.stack([np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]], axis=1).tolist()
+    return [[a, b] for a, b in true_intervals(mask)]  # JSON: [start, stop) as lists
 
 
 def json_safe(x):
