@@ -3,14 +3,16 @@
 ``otr evaluate`` gives means over episodes; this follows the single env of the evaluation
 protocol (frame 0, no randomisation, mean action; the same loop as ``agents.evaluate``) and
 records after every step the reference frame, the root-relative MPJPE and each tracked body's
-share of it (which bodies carry the error, and when), how far the robot's
-anchor (torso) is from the reference anchor horizontally, and for the moving objects (box
-task) the position error, the height offset from the reference (negative: below it) and the
-orientation error, each a mean over the moving objects, and whether a robot–object proximity
-window of the reference is open (the gates of the contact rewards: a hand near an object, from
-the reach to the release). The object error is then also split into the phases before the
-first window, in a window, between windows and after the last one, which tells a policy that
-carries well but sets the object down off its mark from one that loses it in the hands. It
+share of it (which bodies carry the error, and when), how far the robot's anchor (torso) is from
+the reference anchor horizontally, split into ahead/behind and left/right of the reference
+anchor's heading (a robot that trails its reference from one that runs ahead of it), and for
+the moving objects (box task) the position error, its horizontal part split the same way, the
+height offset from the reference (negative: below it) and the orientation error, each a mean
+over the moving objects, and whether a robot–object proximity window of the reference is open
+(the gates of the contact rewards: a hand near an object, from the reach to the release). The
+object error is then also split into the phases before the first window, in a window, between
+windows and after the last one, which tells a policy that carries well but sets the object down
+off its mark from one that loses it in the hands. It
 names what ended the episode: the termination terms that fired, or the clip's end.
 ``--start-frame K`` starts the episode on the reference's frame K instead (the clip cut there,
 ``Reference.subclip``): whether a failure comes from drift carried from the start or from the
@@ -37,7 +39,9 @@ from agents.policy import load_policy
 from agents.vecenv import make_vec_env
 from envs.mdp.metrics import (
     anchor_horizontal_error_m,
+    anchor_offset_heading_m,
     body_position_error_root_relative,
+    object_offset_heading_m,
     object_orientation_error_rad,
     object_position_error_m,
 )
@@ -68,6 +72,9 @@ class EpisodeTrace:
     body_error_mm: list[list[float]] | None = None  # per step, per body: root-relative error (mm)
     start_frame: int = 0  # the reference frame the episode started on
     object_in_window: list[bool] | None = None  # per step: a robot–object window of the reference is open
+    # per step: (ahead, left) of the robot's anchor from the reference's, cm, the reference's heading frame
+    anchor_offset_cm: list[list[float]] | None = None
+    object_offset_cm: list[list[float]] | None = None  # the same for the moving objects (their mean), cm
 
     @property
     def steps(self) -> int:
@@ -81,14 +88,13 @@ class EpisodeTrace:
         means = np.asarray(self.body_error_mm).mean(0)
         return sorted(zip(self.body_names, means.tolist()), key=lambda kv: -kv[1])
 
-    def object_phases(self) -> list[tuple[str, int, float, float]]:
-        """(phase, steps, mean object error cm, share of the episode's summed error) for the
-        phases present, in clip order: ``before`` (the reference's first robot–object window),
-        ``in window``, ``between windows``, ``after`` (its last window: the object set down).
-        Empty on a task without objects."""
+    #: the object phases, in clip order
+    PHASES = ("before", "in window", "between windows", "after")
+
+    def _phase_labels(self) -> np.ndarray | None:
+        """Per step, its phase (``PHASES``); None on a task without objects."""
         if self.object_pos_error_cm is None or self.object_in_window is None:
-            return []
-        error = np.asarray(self.object_pos_error_cm)
+            return None
         inside = np.asarray(self.object_in_window, dtype=bool)
         phase = np.full(inside.shape, "in window", dtype=object)
         if inside.any():
@@ -99,23 +105,54 @@ class EpisodeTrace:
             phase[~inside & (index > first) & (index < last)] = "between windows"
         else:
             phase[:] = "before"
+        return phase
+
+    def object_phases(self) -> list[tuple[str, int, float, float]]:
+        """(phase, steps, mean object error cm, share of the episode's summed error) for the
+        phases present, in clip order: ``before`` (the reference's first robot–object window),
+        ``in window``, ``between windows``, ``after`` (its last window: the object set down).
+        Empty on a task without objects."""
+        phase = self._phase_labels()
+        if phase is None:
+            return []
+        error = np.asarray(self.object_pos_error_cm)
         total = float(error.sum()) or 1.0
         return [(name, int((phase == name).sum()), float(error[phase == name].mean()),
                  float(error[phase == name].sum()) / total)
-                for name in ("before", "in window", "between windows", "after") if (phase == name).any()]
+                for name in self.PHASES if (phase == name).any()]
+
+    def ahead_by_phase(self) -> list[tuple[str, float, float | None]]:
+        """(phase, mean cm the anchor is ahead of its reference, mean cm the objects are ahead of
+        theirs) for the object phases present, both along the reference anchor's heading
+        (negative: behind). Empty on a task without objects or without the offsets."""
+        phase = self._phase_labels()
+        if phase is None or self.anchor_offset_cm is None:
+            return []
+        anchor = np.asarray(self.anchor_offset_cm)[:, 0]
+        objects = None if self.object_offset_cm is None else np.asarray(self.object_offset_cm)[:, 0]
+        return [(name, float(anchor[phase == name].mean()),
+                 None if objects is None else float(objects[phase == name].mean()))
+                for name in self.PHASES if (phase == name).any()]
 
     def rows(self, every: int = 10) -> list[str]:
         """A Markdown table: every ``every``-th step and the last."""
         objects = self.object_pos_error_cm is not None
-        head = "| frame | MPJPE mm | anchor lag cm |" + (" object error cm | object height cm | object orientation deg |"
-                                                       if objects else "")
+        offsets = self.anchor_offset_cm is not None
+        object_offsets = objects and self.object_offset_cm is not None
+        head = ("| frame | MPJPE mm | anchor lag cm |" + (" anchor ahead / left cm |" if offsets else "")
+                + (" object error cm | object height cm | object orientation deg |" if objects else "")
+                + (" object ahead / left cm |" if object_offsets else ""))
         out = [head, "|" + "---|" * (head.count("|") - 1)]
         picks = sorted(set(range(every - 1, self.steps, every)) | {self.steps - 1})
         for i in picks:
             row = f"| {self.frame[i]} | {self.mpjpe_mm[i]:.1f} | {self.anchor_lag_cm[i]:.1f} |"
+            if offsets:
+                row += f" {self.anchor_offset_cm[i][0]:+.1f} / {self.anchor_offset_cm[i][1]:+.1f} |"
             if objects:
                 row += (f" {self.object_pos_error_cm[i]:.1f} | {self.object_height_error_cm[i]:+.1f} |"
                         f" {self.object_ori_error_deg[i]:.1f} |")
+            if object_offsets:
+                row += f" {self.object_offset_cm[i][0]:+.1f} / {self.object_offset_cm[i][1]:+.1f} |"
             out.append(row)
         return out
 
@@ -143,7 +180,8 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     has_objects = vec.tracking_state.objects is not None
     term = vec.task.cfg.terminations.get("object_pos")
     threshold = term.params.get("threshold_m") if term is not None else None
-    cols: dict[str, list] = {k: [] for k in ("frame", "mpjpe", "bodies", "lag", "pos", "height", "ori", "window")}
+    names = ("frame", "mpjpe", "bodies", "lag", "offset", "pos", "height", "ori", "window", "obj_offset")
+    cols: dict[str, list] = {k: [] for k in names}
     ended_by, success = [], False
     try:
         for _ in range(int(vec.motion.clip_length.max()) + 1):
@@ -156,12 +194,14 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
             cols["mpjpe"].append(float(bodies_mm.mean()))
             cols["bodies"].append(bodies_mm.tolist())
             cols["lag"].append(100.0 * float(anchor_horizontal_error_m(s)[0]))
+            cols["offset"].append((100.0 * anchor_offset_heading_m(s)[0]).tolist())
             if has_objects:
                 o = s.objects
                 cols["pos"].append(100.0 * float(object_position_error_m(s)[0].mean()))
                 cols["height"].append(100.0 * float((o.pos_w[0, :, 2] - o.ref_pos_w[0, :, 2]).mean()))
                 cols["ori"].append(float(torch.rad2deg(object_orientation_error_rad(s)[0]).mean()))
                 cols["window"].append(bool((o.hand_gate[0] > 0).any()))
+                cols["obj_offset"].append((100.0 * object_offset_heading_m(s)[0].mean(0)).tolist())
             if bool(terminated[0]) or bool(truncated[0]):
                 ended_by = [k for k, v in info["terminations"].items() if bool(v[0])]
                 success = bool(info["success"][0])
@@ -177,15 +217,18 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
         object_height_error_cm=cols["height"] if has_objects else None,
         object_ori_error_deg=cols["ori"] if has_objects else None,
         object_in_window=cols["window"] if has_objects else None,
-        ended_by=ended_by, success=success,
+        object_offset_cm=cols["obj_offset"] if has_objects else None,
+        anchor_offset_cm=cols["offset"], ended_by=ended_by, success=success,
         object_termination_cm=None if threshold is None else 100.0 * float(threshold),
         body_names=list(vec.tracking_state.body_names), body_error_mm=cols["bodies"])
 
 
 def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
-    """Panels against the reference frame: MPJPE, the three bodies with the largest mean error
-    and anchor lag; for objects, position and height error (with the object termination's
-    distance, the reference's robot–object windows shaded) and orientation error."""
+    """Panels against the reference frame: MPJPE, the three bodies with the largest mean error,
+    the anchor lag and how far the anchor is ahead of its reference; for objects, the position
+    error and its parts ahead, to the left (the reference anchor's heading frame) and up, with the
+    object termination's distance and the reference's robot–object windows shaded; orientation
+    error."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -201,10 +244,18 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
         for name, _ in trace.body_means_mm()[:3]:
             axes[0].plot(frames, bodies[:, trace.body_names.index(name)], lw=0.7, ls=":", label=f"{name} (mm)")
     axes[0].plot(frames, np.asarray(trace.anchor_lag_cm) * 10.0, lw=1.1, label="anchor lag (mm)")
+    if trace.anchor_offset_cm:
+        ahead = np.asarray(trace.anchor_offset_cm)[:, 0] * 10.0
+        axes[0].plot(frames, ahead, lw=1.0, ls="--", label="anchor ahead (+) / behind (−) (mm)")
+        axes[0].axhline(0.0, color="k", lw=0.5)
     axes[0].set_title("tracking", fontsize=9)
     if objects:
         axes[1].plot(frames, trace.object_pos_error_cm, lw=1.1, label="position error")
         axes[1].plot(frames, trace.object_height_error_cm, lw=1.1, label="height (object − reference)")
+        if trace.object_offset_cm:
+            offset = np.asarray(trace.object_offset_cm)
+            axes[1].plot(frames, offset[:, 0], lw=0.9, ls="--", label="ahead (+) / behind (−)")
+            axes[1].plot(frames, offset[:, 1], lw=0.9, ls=":", label="left (+) / right (−)")
         if trace.object_termination_cm is not None:
             axes[1].axhline(trace.object_termination_cm, color="k", lw=0.8, ls="--", label="object termination")
         for k, (a, b) in enumerate(true_intervals(trace.object_in_window or [])):  # the windows, shaded
@@ -255,6 +306,14 @@ def main(argv: list[str] | None = None) -> int:
     if phases:
         print("object error by the reference's robot–object windows (cm, steps, share of the error): "
               + ", ".join(f"{name} {cm:.1f} ({n} steps, {100 * share:.0f} %)" for name, n, cm, share in phases))
+    if trace.anchor_offset_cm:
+        offset = np.asarray(trace.anchor_offset_cm)
+        print(f"torso ahead / left of its reference (cm, mean over the episode): {offset[:, 0].mean():+.1f} / "
+              f"{offset[:, 1].mean():+.1f} (ahead in {100 * (offset[:, 0] > 0).mean():.0f} % of the steps)")
+    ahead = trace.ahead_by_phase()
+    if ahead:
+        print("ahead of the reference along its heading (cm; negative: behind), anchor / object, by the same phases: "
+              + ", ".join(f"{name} {a:+.1f} / {o:+.1f}" for name, a, o in ahead))
     if args.png:
         print(f"wrote {plot_trace(trace, args.png)}")
     if args.json:

@@ -90,6 +90,16 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     assert trace.ended_by  # a termination's name, or the clip's end
     assert (trace.ended_by == [CLIP_END]) == trace.success
     assert trace.object_termination_cm == pytest.approx(25.0)
+    # the anchor's offset in the reference's heading frame is the lag, split into ahead and left
+    offsets = np.asarray(trace.anchor_offset_cm)
+    assert offsets.shape == (trace.steps, 2)
+    np.testing.assert_allclose(np.linalg.norm(offsets, axis=1), trace.anchor_lag_cm, rtol=1e-4, atol=1e-4)
+    # the box's: its horizontal error (one moving object), so never more than the whole error
+    box = np.linalg.norm(np.asarray(trace.object_offset_cm), axis=1)
+    whole = np.asarray(trace.object_pos_error_cm)
+    np.testing.assert_allclose(box, np.sqrt(np.maximum(whole**2 - np.asarray(trace.object_height_error_cm) ** 2, 0)),
+                               rtol=1e-3, atol=1e-3)
+    assert [p[0] for p in trace.ahead_by_phase()] == [p[0] for p in trace.object_phases()]
     # the per-body errors are the MPJPE's parts: 14 tracked bodies, the root (pelvis) at zero
     bodies = np.asarray(trace.body_error_mm)
     assert bodies.shape == (trace.steps, 14) and len(trace.body_names) == 14
@@ -102,6 +112,7 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     out = capsys.readouterr().out
     assert f"{trace.steps} steps" in out and out.count("\n| ") >= 2
     assert f"{means[0][0]} {means[0][1]:.1f}" in out  # the per-body line, largest first
+    assert f"mean over the episode): {offsets[:, 0].mean():+.1f} / {offsets[:, 1].mean():+.1f}" in out
     saved = json.loads((tmp_path / "t.json").read_text())
     assert saved["mpjpe_mm"] == trace.mpjpe_mm and saved["steps"] == trace.steps
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
@@ -157,6 +168,11 @@ def test_object_phases_name_every_stretch_in_clip_order():
                                      ("in window", 3, pytest.approx(8 / 3), pytest.approx(8 / 37)),
                                      ("between windows", 1, 6.0, pytest.approx(6 / 37)),
                                      ("after", 2, 11.0, pytest.approx(22 / 37))]
+    assert trace.ahead_by_phase() == []  # no offsets recorded
+    trace.anchor_offset_cm = [[float(k), 1.0] for k in range(7)]  # (ahead, left)
+    trace.object_offset_cm = [[-2.0 * k, 0.0] for k in range(7)]
+    assert trace.ahead_by_phase() == [("before", 0.0, 0.0), ("in window", pytest.approx(7 / 3), pytest.approx(-14 / 3)),
+                                      ("between windows", 3.0, -6.0), ("after", 5.5, -11.0)]
     trace.object_in_window = [False] * 7  # no window at all: one phase
     assert [p[:2] for p in trace.object_phases()] == [("before", 7)]
     trace.object_pos_error_cm = trace.object_in_window = None  # no objects

@@ -14,7 +14,12 @@ import yaml
 from envs.config import DEFAULT_CONFIG, CommandCfg, TrackEnvCfg, load_track_config
 from envs.mdp import observations, rewards, terminations
 from envs.mdp.commands import MotionCommand
-from envs.mdp.metrics import mpjpe_root_relative, mpjpe_root_relative_heading_aligned
+from envs.mdp.metrics import (
+    anchor_horizontal_error_m,
+    anchor_offset_heading_m,
+    mpjpe_root_relative,
+    mpjpe_root_relative_heading_aligned,
+)
 from envs.mdp.motion import MotionLibrary
 from envs.mdp.state import TrackingState, aligned_targets
 from otr_gym import robot
@@ -352,6 +357,21 @@ def test_mpjpe_is_root_relative():
     bent = s.body_pos_w.clone()
     bent[:, TRACKED.index("left_wrist_yaw_link")] += torch.tensor([0.0, 0.0, 0.14])
     assert torch.allclose(mpjpe_root_relative(replace(s, body_pos_w=bent)), torch.full((3,), 0.01), atol=1e-6)
+
+
+def test_anchor_offset_is_split_along_the_reference_heading_and_ignores_height():
+    s = _state(n=3)
+    q = s.ref_anchor_quat_w
+    heading = torch.atan2(2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2))  # yaw (wxyz)
+    forward = torch.stack([torch.cos(heading), torch.sin(heading), torch.zeros(3)], -1)
+    left = torch.stack([-torch.sin(heading), torch.cos(heading), torch.zeros(3)], -1)
+    # the robot 20 cm behind its reference, 5 cm to its left and 30 cm higher
+    moved = s.body_pos_w + (-0.2 * forward + 0.05 * left + torch.tensor([0.0, 0.0, 0.3]))[:, None]
+    shifted = replace(s, body_pos_w=moved)
+    offset = anchor_offset_heading_m(shifted)
+    assert torch.allclose(offset, torch.tensor([-0.2, 0.05]).expand(3, 2), atol=1e-5)
+    assert torch.allclose(offset.norm(dim=-1), anchor_horizontal_error_m(shifted), atol=1e-6)
+    assert torch.allclose(anchor_offset_heading_m(s), torch.zeros(3, 2), atol=1e-6)
 
 
 def test_mpjpe_charges_heading_drift_and_its_heading_aligned_diagnostic_does_not():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from envs.mdp.state import TrackingState
-from otr_gym.rotations import quat_error_angle
+from otr_gym.rotations import quat_apply_inverse, quat_error_angle, quat_yaw
 
 
 def _root_relative_error(s: TrackingState, ref_body_pos_w: torch.Tensor, root: str) -> torch.Tensor:
@@ -38,6 +38,30 @@ def mpjpe_root_relative_heading_aligned(s: TrackingState, root: str = "pelvis") 
 def anchor_horizontal_error_m(s: TrackingState) -> torch.Tensor:
     """(N,) horizontal distance (m, world x–y) of the robot's anchor from the reference's."""
     return torch.linalg.norm(s.ref_anchor_pos_w[:, :2] - s.anchor_pos_w[:, :2], dim=-1)
+
+
+def horizontal_offset_in_heading(offset_w: torch.Tensor, heading_quat_w: torch.Tensor) -> torch.Tensor:
+    """(..., 2) the horizontal part of world offsets (..., 3) in the frame of a heading (the yaw of
+    unit quaternions (..., 4), wxyz): x forward, y to the left."""
+    flat = torch.cat([offset_w[..., :2], torch.zeros_like(offset_w[..., 2:])], dim=-1)
+    return quat_apply_inverse(quat_yaw(heading_quat_w), flat)[..., :2]
+
+
+def anchor_offset_heading_m(s: TrackingState) -> torch.Tensor:
+    """(N, 2) the robot's anchor minus the reference's (m), horizontal, in the reference anchor's
+    heading frame: x forward (negative: the robot is behind its reference), y to the left. Its
+    norm is ``anchor_horizontal_error_m``; the split tells trailing from running ahead or
+    drifting sideways."""
+    return horizontal_offset_in_heading(s.anchor_pos_w - s.ref_anchor_pos_w, s.ref_anchor_quat_w)
+
+
+def object_offset_heading_m(s: TrackingState) -> torch.Tensor:
+    """(N, M, 2) each moving object minus its reference position (m), horizontal, in the
+    reference anchor's heading frame (x forward, y left): where a carried object is off its mark
+    as the reference person sees it."""
+    o = s.objects
+    heading = s.ref_anchor_quat_w[:, None].expand(-1, o.pos_w.shape[1], -1)
+    return horizontal_offset_in_heading(o.pos_w - o.ref_pos_w, heading)
 
 
 def object_position_error_m(s: TrackingState) -> torch.Tensor:
