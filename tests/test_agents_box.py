@@ -94,7 +94,7 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     offsets = np.asarray(trace.anchor_offset_cm)
     assert offsets.shape == (trace.steps, 2)
     np.testing.assert_allclose(np.linalg.norm(offsets, axis=1), trace.anchor_lag_cm, rtol=1e-4, atol=1e-4)
-    # the box's: its horizontal error (one moving object), so never more than the whole error
+    # the box's (one moving object): its error without the height part
     box = np.linalg.norm(np.asarray(trace.object_offset_cm), axis=1)
     whole = np.asarray(trace.object_pos_error_cm)
     np.testing.assert_allclose(box, np.sqrt(np.maximum(whole**2 - np.asarray(trace.object_height_error_cm) ** 2, 0)),
