@@ -42,9 +42,9 @@ def anchor_horizontal_error_m(s: TrackingState) -> torch.Tensor:
 
 def horizontal_offset_in_heading(offset_w: torch.Tensor, heading_quat_w: torch.Tensor) -> torch.Tensor:
     """(..., 2) the horizontal part of world offsets (..., 3) in the frame of a heading (the yaw of
-    unit quaternions (..., 4), wxyz): x forward, y to the left."""
-    flat = torch.cat([offset_w[..., :2], torch.zeros_like(offset_w[..., 2:])], dim=-1)
-    return quat_apply_inverse(quat_yaw(heading_quat_w), flat)[..., :2]
+    unit quaternions (..., 4), wxyz): x forward, y to the left. A turn about z keeps the height
+    apart, so x–y of the turned offset is the turned horizontal part."""
+    return quat_apply_inverse(quat_yaw(heading_quat_w), offset_w)[..., :2]
 
 
 def anchor_offset_heading_m(s: TrackingState) -> torch.Tensor:
