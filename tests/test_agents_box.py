@@ -56,7 +56,7 @@ def test_box_training_logs_object_terms_and_keeps_the_ablation_in_the_run(box_ru
     assert 0.0 <= scalars["metric/object_pos_error_m"][1][0] < 0.5
     assert "termination/object_pos" in scalars and "metric/success_rate" in scalars
     spec = runs.read_env_spec(box_run)
-    assert spec["observation_dims"]["policy"] == 191
+    assert spec["observation_dims"]["policy"] == 160 + 37  # §3 actor with state estimation + box and table terms
 
 
 def test_box_evaluation_reports_object_errors_and_export_names_the_object_observations(box_run, box_reference,
@@ -70,9 +70,10 @@ def test_box_evaluation_reports_object_errors_and_export_names_the_object_observ
     assert final["support_contact"]["ground"]["contact_rate"] == 1.0
     meta = read_metadata(export_onnx(box_run, tmp_path / "policy.onnx"))
     names = [t["name"] for t in meta["observation_layout"]]
-    assert names[6:] == ["object_pos_b", "object_ori_b", "object_command", "contact_schedule",
+    assert names[:2] == ["command", "anchor_pos_b"] and "base_lin_vel_b" in names
+    assert names[8:] == ["object_pos_b", "object_ori_b", "object_command", "contact_schedule",
                          "static_object_pos_b", "static_object_ori_b"]
-    assert meta["observation_dim"] == 191 and meta["objects"]["moving"] == ["box"]
+    assert meta["observation_dim"] == 197 and meta["objects"]["moving"] == ["box"]
     assert meta["objects"]["supports"] == ["ground", "table"]
 
 

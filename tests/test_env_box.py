@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 from types import SimpleNamespace
 
 import gymnasium
@@ -21,6 +22,7 @@ from conftest import BOX_HALF_M
 from gymnasium.utils.env_checker import check_env
 
 import otr_gym  # noqa: F401  (registers the environments)
+from agents.train import parse_sets
 from envs.box import make_box_task
 from envs.collision import collision_shapes
 from envs.config import BOX_CONFIG, BoxEnvCfg, TerminationTermCfg, load_box_config
@@ -48,6 +50,17 @@ def eval_task(box_reference):
 # ------------------------------------------------------------------ configuration and errors
 def test_box_yaml_lists_exactly_the_dataclass_defaults():
     assert load_box_config(BOX_CONFIG) == BoxEnvCfg()
+
+
+def test_the_actor_knows_its_world_position_and_the_older_actor_is_one_sets_file_away():
+    sensed = ("anchor_pos_b", "base_lin_vel_b")
+    default = [(t.fn, t.noise) for t in BoxEnvCfg().observations.policy]
+    assert ("anchor_pos_b", 0.25) in default and ("base_lin_vel_b", 0.5) in default  # §3 MJ default actor
+    # benchmarks/box_no_state_estimation.sets, passed as SETS to train_box.sh, is the 154-dim actor
+    # (§3 HS) of the box runs before 2026-11-29: the same terms and noise, less the two above
+    sets = (Path(__file__).resolve().parents[1] / "benchmarks" / "box_no_state_estimation.sets").read_text().split()
+    older = load_box_config(BOX_CONFIG, parse_sets(sets)["env"])
+    assert [(t.fn, t.noise) for t in older.observations.policy] == [t for t in default if t[0] not in sensed]
 
 
 def test_a_reference_without_objects_is_refused_naming_the_file(walking_reference):
@@ -346,7 +359,7 @@ def test_observations_name_the_object_terms_and_their_sizes(eval_task):
     layout = dict(eval_task.obs_layout["policy"])
     assert layout["object_pos_b"] == 3 and layout["object_ori_b"] == 6 and layout["object_command"] == 15
     assert layout["contact_schedule"] == 2 + 2 and layout["static_object_pos_b"] == 3
-    assert eval_task.obs_dims["policy"] == 154 + 3 + 6 + 15 + 4 + 3 + 6
+    assert eval_task.obs_dims["policy"] == 160 + 3 + 6 + 15 + 4 + 3 + 6
     meta = eval_task.policy_metadata()
     assert "object_command" in meta["observation_names"]["policy"]
     assert meta["objects"]["moving"] == ["box"] and meta["objects"]["static"] == ["table"]
