@@ -338,8 +338,8 @@ def _box_policy_obs() -> list[ObsTermCfg]:
     # n 0.5) + FK actor additions (object pose n 0.02/0.05, supports) + the reference's object
     # command and contact schedule. The box is tracked in the world, so the actor is told where its
     # reference is: with the 154 actor (HS) the seed-4 policies ran 6-9 cm ahead of their reference
-    # and ended at 7.1-8.2 cm of box error; with this one 0.2 cm and 4.7 cm after 20 minutes
-    # (docs/results/box.md). The object terms need a world pose measured anyway (motion capture),
+    # and ended at 7.1-8.2 cm of box error; with this one it ran 0.2 cm ahead and ended at 4.7 cm
+    # after 20 minutes (docs/results/box.md). The object terms need a world pose measured anyway (motion capture),
     # so the robot's own world position costs a deployment nothing more.
     sensed = [ObsTermCfg("command", 0.0), ObsTermCfg("anchor_pos_b", 0.25), ObsTermCfg("anchor_ori_b", 0.05),
               ObsTermCfg("base_lin_vel_b", 0.5), ObsTermCfg("base_ang_vel_b", 0.2), ObsTermCfg("joint_pos_rel", 0.01),
