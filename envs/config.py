@@ -101,10 +101,14 @@ class ObsTermCfg:
     noise: float = 0.0  # uniform ±noise, actor terms only (§3)
 
 
-def _policy_obs() -> list[ObsTermCfg]:
-    # §3 Actor, HS = MJ "No-State-Estimation": 58 + 6 + 3 + 29 + 29 + 29 = 154
-    return [ObsTermCfg("command", 0.0), ObsTermCfg("anchor_ori_b", 0.05), ObsTermCfg("base_ang_vel_b", 0.2),
-            ObsTermCfg("joint_pos_rel", 0.01), ObsTermCfg("joint_vel", 0.5), ObsTermCfg("last_action", 0.0)]
+def _policy_obs(state_estimation: bool = False) -> list[ObsTermCfg]:
+    # §3 Actor, HS = MJ "No-State-Estimation": 58 + 6 + 3 + 29 + 29 + 29 = 154; with state
+    # estimation (MJ's default) + anchor_pos_b and base_lin_vel_b = 160
+    sensed = [ObsTermCfg("anchor_pos_b", 0.25)] if state_estimation else []
+    moving = [ObsTermCfg("base_lin_vel_b", 0.5)] if state_estimation else []
+    return [ObsTermCfg("command", 0.0), *sensed, ObsTermCfg("anchor_ori_b", 0.05), *moving,
+            ObsTermCfg("base_ang_vel_b", 0.2), ObsTermCfg("joint_pos_rel", 0.01), ObsTermCfg("joint_vel", 0.5),
+            ObsTermCfg("last_action", 0.0)]
 
 
 def _critic_obs() -> list[ObsTermCfg]:
@@ -334,19 +338,17 @@ def _box_command() -> CommandCfg:
 
 
 def _box_policy_obs() -> list[ObsTermCfg]:
-    # §3 actor in MJ's default, state-estimation variant (160: + anchor_pos_b n 0.25, base_lin_vel_b
-    # n 0.5) + FK actor additions (object pose n 0.02/0.05, supports) + the reference's object
-    # command and contact schedule. The box is tracked in the world, so the actor is told where its
-    # reference is: with the 154 actor (HS) the seed-4 policies ran 6-9 cm ahead of their reference
-    # and ended at 7.1-8.2 cm of box error; with this one it ran 0.2 cm ahead and ended at 4.7 cm
-    # after 20 minutes (docs/results/box.md). The object terms need a world pose measured anyway (motion capture),
-    # so the robot's own world position costs a deployment nothing more.
-    sensed = [ObsTermCfg("command", 0.0), ObsTermCfg("anchor_pos_b", 0.25), ObsTermCfg("anchor_ori_b", 0.05),
-              ObsTermCfg("base_lin_vel_b", 0.5), ObsTermCfg("base_ang_vel_b", 0.2), ObsTermCfg("joint_pos_rel", 0.01),
-              ObsTermCfg("joint_vel", 0.5), ObsTermCfg("last_action", 0.0)]
-    return sensed + [ObsTermCfg("object_pos_b", 0.02), ObsTermCfg("object_ori_b", 0.05),
-                     ObsTermCfg("object_command", 0.0), ObsTermCfg("contact_schedule", 0.0),
-                     ObsTermCfg("static_object_pos_b", 0.02), ObsTermCfg("static_object_ori_b", 0.05)]
+    # §3 actor with state estimation (160) + FK actor additions (object pose n 0.02/0.05, supports)
+    # + the reference's object command and contact schedule. The box is tracked in the world, so
+    # the actor is told where its reference is: with the 154 actor (HS) the seed-4 policies ran
+    # 6-9 cm ahead of their reference and ended at 7.1-8.2 cm of box error; with this one it ran
+    # 0.2 cm ahead and ended at 4.7 cm after 20 minutes (docs/results/box.md). The object terms
+    # need a world pose measured anyway (motion capture), so the robot's own world position costs
+    # a deployment nothing more.
+    return _policy_obs(state_estimation=True) + [
+        ObsTermCfg("object_pos_b", 0.02), ObsTermCfg("object_ori_b", 0.05), ObsTermCfg("object_command", 0.0),
+        ObsTermCfg("contact_schedule", 0.0), ObsTermCfg("static_object_pos_b", 0.02),
+        ObsTermCfg("static_object_ori_b", 0.05)]
 
 
 def _box_critic_obs() -> list[ObsTermCfg]:
