@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The issue-11 comparison on ONE GPU: five OTR-G1-BoxTrack-v0 runs trained concurrently (each its own
 # benchmarks/train_box.sh process, 4096 envs, seed 42, RUNS_DIR runs/b5/JOB, OUT_DIR out/b5/JOB):
-#   ours           our OMOMO sub3_largebox_003 reference (out/refs2/sub3_largebox_003.npz)
+#   ours           our OMOMO sub3_largebox_003 reference (OURS_REF, default out/refs2/sub3_largebox_003.npz)
 #   holo           Holosoma's reference of the same clip ($IN/sub3_largebox_003_mj_w_obj.npz, mesh $IN/largebox.obj)
 #   no_contact     ours, ABLATION=no_contact      no_object_vel   ours, ABLATION=no_object_vel
 #   demo           the `otr demo` box carry ($IN/demo_box_carry.npz)
@@ -11,21 +11,26 @@
 # Each run trains (resuming its run) until it has TOTAL_MINUTES of learning (TOTAL_MINUTES minus
 # what it already learned); the trainers get SIGINT (checkpoint saved) TRAIN_DEADLINE_S after the
 # start, so one command stays inside a 10-minute limit. With "report": train_box.sh report for all
-# five concurrently (EVAL_ENVS=512, VIDEO=0). Everything goes to $OUT/results.tgz and
-# $OUT/summary.txt. The device machine sees only the working tree, so the inputs are copied into
+# five concurrently (EVAL_ENVS=512, VIDEO=0). Everything goes to $OUT/results.tgz (per job: logs,
+# evaluations, curves, the run's config and TensorBoard event files, so that `python -m agents.plots
+# ours/run holo/run … --labels …` draws the runs on one figure) and $OUT/summary.txt. The device machine sees only the working tree, so the inputs are copied into
 # a git-ignored folder IN (default out/b5in) carried with the call:
 #   mkdir -p out/b5in; otr demo --out out/demo_box; cp out/demo_box/box_carry.npz out/b5in/demo_box_carry.npz
 #   cp ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz ../shared/data/objects/largebox.obj out/b5in/
 # Used for docs/results/box.md's "five runs on one GPU" table: `... 6 550` then `... 10 420 report 585`.
-# Knobs: JOBS (subset), NUM_ENVS (4096), EVAL_ENVS (512), DEVICE (cuda), OMP_NUM_THREADS (3), IN.
+# 2026-11-29 (the state-estimation actor): JOBS="ours holo no_contact no_object_vel", `... 6 545`,
+# then `... 10 400 report 585` (four ways, ~39k env steps/s each on one H200).
+# Knobs: JOBS (subset), OURS_REF (the reference of ours and the ablations), NUM_ENVS (4096),
+# EVAL_ENVS (512), DEVICE (cuda), OMP_NUM_THREADS (3), IN.
 set -uo pipefail
 total=$1; train_deadline=$2; do_report=${3:-}; report_deadline=${4:-590}
 t0=$(date +%s)
 IN=${IN:-out/b5in}
 export DEVICE=${DEVICE:-cuda} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-3} NUM_ENVS=${NUM_ENVS:-4096} SEED=42
 JOBS=${JOBS:-ours holo no_contact no_object_vel demo}
-declare -A REF=([ours]=out/refs2/sub3_largebox_003.npz [no_contact]=out/refs2/sub3_largebox_003.npz
-                [no_object_vel]=out/refs2/sub3_largebox_003.npz [holo]=$IN/sub3_largebox_003_mj_w_obj.npz
+OURS_REF=${OURS_REF:-out/refs2/sub3_largebox_003.npz}
+declare -A REF=([ours]=$OURS_REF [no_contact]=$OURS_REF [no_object_vel]=$OURS_REF
+                [holo]=$IN/sub3_largebox_003_mj_w_obj.npz
                 [demo]=$IN/demo_box_carry.npz)
 declare -A ABL=([no_contact]=no_contact [no_object_vel]=no_object_vel)
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null; date -u
@@ -106,7 +111,10 @@ for j in $JOBS; do
   for f in summary.md eval.json eval_randomized.json training_curves.png report.log; do
     cp out/b5/$j/$f /tmp/res/$j/ 2>/dev/null
   done
-  [ -n "$run" ] && cp "$run/training_summary.json" "$run/config.yaml" /tmp/res/$j/ 2>/dev/null
+  if [ -n "$run" ]; then
+    cp "$run/training_summary.json" "$run/config.yaml" /tmp/res/$j/ 2>/dev/null
+    mkdir -p /tmp/res/$j/run && cp "$run"/events.out.tfevents.* /tmp/res/$j/run/ 2>/dev/null
+  fi
   { echo "### $j (run $run)"; cat out/b5/$j/summary.md 2>/dev/null || echo "(no summary)"; tail -3 out/b5/$j/report.log 2>/dev/null; } >> "$OUT/summary.txt"
 done
 tar czf "$OUT/results.tgz" -C /tmp/res .
