@@ -11,10 +11,11 @@
 # Each run trains (resuming its run) until it has TOTAL_MINUTES of learning (TOTAL_MINUTES minus
 # what it already learned); the trainers get SIGINT (checkpoint saved) TRAIN_DEADLINE_S after the
 # start, so one command stays inside a 10-minute limit. With "report": train_box.sh report for all
-# five concurrently (EVAL_ENVS=512, VIDEO=0). Everything goes to $OUT/results.tgz (per job: logs,
-# evaluations, curves, the run's config and TensorBoard event files, so that `python -m agents.plots
-# ours/run holo/run … --labels …` draws the runs on one figure) and $OUT/summary.txt. The device machine sees only the working tree, so the inputs are copied into
-# a git-ignored folder IN (default out/b5in) carried with the call:
+# five concurrently (EVAL_ENVS=512, VIDEO=0). Everything goes to $OUT/summary.txt and
+# $OUT/results.tgz: per job its logs, evaluations, curves, config and TensorBoard event files (JOB/run,
+# so `python -m agents.plots ours/run holo/run … --labels …` draws the runs on one figure). The
+# device machine sees only the working tree, so the inputs are copied into a git-ignored folder IN
+# (default out/b5in) carried with the call:
 #   mkdir -p out/b5in; otr demo --out out/demo_box; cp out/demo_box/box_carry.npz out/b5in/demo_box_carry.npz
 #   cp ../shared/data/references/holosoma/sub3_largebox_003_mj_w_obj.npz ../shared/data/objects/largebox.obj out/b5in/
 # Used for docs/results/box.md's "five runs on one GPU" table: `... 6 550` then `... 10 420 report 585`.
