@@ -10,10 +10,19 @@ from pathlib import Path
 import pytest
 
 SHARED_DATA = Path(os.environ.get("OTR_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
 # Headless rendering in tests: EGL unless the caller chose a GL backend (must precede `import mujoco`).
 if sys.platform.startswith("linux"):
     os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def benchmark_sets(name: str) -> dict:
+    """The nested overrides of a ``benchmarks/NAME`` sets file, split and parsed as the shell
+    recipes pass it (``SETS="$(cat FILE)"``, one ``--set`` per word)."""
+    from agents.train import parse_sets
+
+    return parse_sets((BENCHMARKS / name).read_text().split())
 
 
 @pytest.fixture(scope="session")

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import warnings
-from pathlib import Path
 from types import SimpleNamespace
 
 import gymnasium
@@ -18,11 +17,10 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import BOX_HALF_M
+from conftest import BOX_HALF_M, benchmark_sets
 from gymnasium.utils.env_checker import check_env
 
 import otr_gym  # noqa: F401  (registers the environments)
-from agents.train import parse_sets
 from envs.box import make_box_task
 from envs.collision import collision_shapes
 from envs.config import BOX_CONFIG, BoxEnvCfg, TerminationTermCfg, load_box_config
@@ -58,8 +56,7 @@ def test_the_actor_knows_its_world_position_and_the_older_actor_is_one_sets_file
     assert ("anchor_pos_b", 0.25) in default and ("base_lin_vel_b", 0.5) in default  # §3 MJ default actor
     # benchmarks/box_no_state_estimation.sets, passed as SETS to train_box.sh, is the 154-dim actor
     # (§3 HS) of the box runs before 2026-11-29: the same terms and noise, less the two above
-    sets = (Path(__file__).resolve().parents[1] / "benchmarks" / "box_no_state_estimation.sets").read_text().split()
-    older = load_box_config(BOX_CONFIG, parse_sets(sets)["env"])
+    older = load_box_config(BOX_CONFIG, benchmark_sets("box_no_state_estimation.sets")["env"])
     assert [(t.fn, t.noise) for t in older.observations.policy] == [t for t in default if t[0] not in sensed]
 
 

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import yaml
+from conftest import benchmark_sets
 
+from agents.config import load_train_config
 from envs.config import DEFAULT_CONFIG, CommandCfg, TrackEnvCfg, load_track_config
 from envs.mdp import observations, rewards, terminations
 from envs.mdp.commands import MotionCommand
@@ -312,11 +313,7 @@ def test_anchor_rewards_use_the_unaligned_reference():
 def test_the_precise_tracking_recipe_adds_a_steeper_position_term_to_section_4s():
     # benchmarks/precise_tracking.sets, the recipe that brought the AMASS jog to 35 mm: 10 PPO
     # epochs, KL target 0.02, and body positions rewarded a second time at σ 0.1 m beside §4's 0.3
-    from agents.config import load_train_config
-    from agents.train import parse_sets
-
-    sets = (Path(__file__).resolve().parents[1] / "benchmarks" / "precise_tracking.sets").read_text().split()
-    train = load_train_config(overrides=parse_sets(sets))
+    train = load_train_config(overrides=benchmark_sets("precise_tracking.sets"))
     assert (train.algorithm.num_learning_epochs, train.algorithm.desired_kl) == (10, 0.02)
     cfg = load_track_config(overrides=train.env)
     assert set(cfg.rewards) == set(TrackEnvCfg().rewards) | {"body_pos_fine"}
