@@ -50,6 +50,13 @@ class AlgorithmCfg:
     desired_kl: float = 0.01
     max_grad_norm: float = 1.0
     optimizer: str = "adam"
+    #: rsl-rl's bfloat16 autocast of the update's forward passes and losses (ours; off: every
+    #: run in README learned in float32; ``benchmarks/ppo_update_speed.py`` measures the update).
+    use_mixed_precision: bool = False
+
+
+#: ``TrainCfg.torch_compile_mode`` values rsl-rl-lib 5.x accepts.
+COMPILE_MODES = (None, "default", "max-autotune-no-cudagraphs")
 
 
 def _obs_groups() -> dict[str, list[str]]:
@@ -71,6 +78,14 @@ class TrainCfg:
     actor: ActorCfg = field(default_factory=ActorCfg)
     critic: CriticCfg = field(default_factory=CriticCfg)
     algorithm: AlgorithmCfg = field(default_factory=AlgorithmCfg)
+    #: Float32 matrix products on TF32 tensor cores (CUDA, ``torch.backends.cuda.matmul``): the
+    #: networks' layers in the rollout and the update. The MDP's maths is element-wise, so the
+    #: environment is unaffected. Ours; off: every run in README learned in full float32.
+    tf32_matmul: bool = False
+    #: ``torch.compile`` mode of actor and critic (rsl-rl's ``torch_compile_mode``): None (eager,
+    #: every run in README), "default" or "max-autotune-no-cudagraphs" (rsl-rl refuses the CUDA-graph
+    #: modes: its algorithms call the models several times per graph).
+    torch_compile_mode: str | None = None
     #: Overrides of the environment config (configs/env/track.yaml layout).
     env: dict[str, Any] = field(default_factory=dict)
 
@@ -78,6 +93,9 @@ class TrainCfg:
         for name in ("num_envs", "num_steps_per_env", "max_iterations", "save_interval"):
             if getattr(self, name) < 1:
                 raise ValueError(f"training config: {name} must be >= 1, got {getattr(self, name)}")
+        if self.torch_compile_mode not in COMPILE_MODES:
+            raise ValueError(f"training config: torch_compile_mode {self.torch_compile_mode!r} is not one of "
+                             f"{', '.join(map(repr, COMPILE_MODES))}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain nested dict (YAML-safe: tuples become lists)."""
@@ -98,6 +116,7 @@ class TrainCfg:
                       "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": init_std,
                                            "std_type": "scalar"}},
             "critic": {"class_name": "MLPModel", **_plain(dataclasses.asdict(self.critic))},
+            "torch_compile_mode": self.torch_compile_mode,
         }
 
 

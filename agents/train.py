@@ -156,6 +156,8 @@ def _train(args: argparse.Namespace, ctx: distributed.Context) -> int:
     record["world_size"] = ctx.world_size
     record["sessions"][-1]["world_size"] = ctx.world_size
     _seed_everything(seed)
+    # process-wide, like the seed: the networks' float32 matmuls (the MDP's maths is element-wise)
+    torch.backends.cuda.matmul.allow_tf32 = cfg.tf32_matmul
 
     env = make_vec_env(cfg.task, list(library.references), cfg.num_envs, str(device), cfg.env, seed=seed)
     stop = StopConditions(args.max_minutes)

@@ -10,7 +10,7 @@ from rsl_rl.algorithms import PPO
 from rsl_rl.modules import EmpiricalNormalization
 from tensordict import TensorDict
 
-from agents.config import DEFAULT_CONFIG, TrainCfg, load_train_config
+from agents.config import DEFAULT_CONFIG, AlgorithmCfg, TrainCfg, load_train_config
 
 
 def test_yaml_defaults_equal_the_dataclass_defaults():
@@ -47,6 +47,20 @@ def test_rsl_rl_builds_ppo_with_the_spec_numbers_from_the_dict():
     assert linear_widths == [512, 256, 128, 29]
     assert torch.allclose(alg.actor.distribution.std_param, torch.ones(29))
     assert alg.storage.num_transitions_per_env == 24
+
+
+def test_faster_numerics_reach_rsl_rl_and_unsupported_compile_modes_are_refused():
+    cfg = TrainCfg(num_envs=8, torch_compile_mode="default", algorithm=AlgorithmCfg(use_mixed_precision=True))
+    train_cfg = cfg.to_rsl_rl()
+    assert train_cfg["torch_compile_mode"] == "default"
+    train_cfg["multi_gpu"] = None
+    obs = TensorDict({"policy": torch.zeros(8, 154), "critic": torch.zeros(8, 286)}, batch_size=[8])
+    alg = PPO.construct_algorithm(obs, SimpleNamespace(num_envs=8, num_actions=29), train_cfg, "cpu")
+    assert alg.use_mixed_precision
+    assert alg.actor is not alg._raw_actor and alg.critic is not alg._raw_critic  # wrapped by torch.compile
+    assert TrainCfg().to_rsl_rl()["torch_compile_mode"] is None and not TrainCfg().algorithm.use_mixed_precision
+    with pytest.raises(ValueError, match="'reduce-overhead'"):
+        TrainCfg(torch_compile_mode="reduce-overhead")  # CUDA graphs: rsl-rl refuses them too
 
 
 def test_unknown_config_key_is_named():

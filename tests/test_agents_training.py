@@ -61,8 +61,16 @@ def run_dir(walk_ref, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def resumed_run(run_dir) -> Path:
-    """The same run continued under a budget far below one iteration: exactly one more."""
-    rc = cli.main(["train", "--resume", str(run_dir), "--iterations", "50", "--max-minutes", "0.001"])
+    """The same run continued under a budget far below one iteration: exactly one more, with
+    TF32 matmuls switched on by ``--set`` (a CUDA flag; it changes nothing on the CPU)."""
+    previous = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = False
+    try:
+        rc = cli.main(["train", "--resume", str(run_dir), "--iterations", "50", "--max-minutes", "0.001",
+                       "--set", "tf32_matmul=true"])
+        assert torch.backends.cuda.matmul.allow_tf32, "tf32_matmul=true did not reach torch"
+    finally:
+        torch.backends.cuda.matmul.allow_tf32 = previous
     assert rc == 0
     return run_dir
 
@@ -111,7 +119,10 @@ def test_resume_continues_counter_optimizer_normalizer_and_curves(resumed_run):
     assert after["infos"]["training_state"]["logger"]["tot_timesteps"] == logger_before + SAMPLES_PER_ITERATION
     # one curve, no repeated iteration
     assert read_scalars(resumed_run)["Perf/total_fps"][0] == [0, 1]
-    assert len(runs.run_config(resumed_run)["sessions"]) == 2
+    record = runs.run_config(resumed_run)
+    assert len(record["sessions"]) == 2
+    # the override is recorded with the run, so the next resume keeps it
+    assert record["train"]["tf32_matmul"] is True and record["train"]["torch_compile_mode"] is None
 
 
 def test_loading_a_checkpoint_restores_the_exact_training_state(resumed_run, walk_ref):
