@@ -5,7 +5,8 @@ Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
 
 - env i plays clip i mod C from frame 0, without domain randomisation, observation or reset
   noise (the env's ``evaluation`` mode), and the episode ends with the clip, not a time-out;
-- the policy's deterministic mean action;
+- the policy's deterministic mean action (``--action-noise STD`` adds Gaussian noise to it: a
+  diagnostic of what the policy's exploration noise costs, not part of the protocol);
 - success: the clip reached its last frame without a tracking termination; per clip and
   overall, how many episodes each termination ended (``ended_by``; several may fire at once);
 - MPJPE: root-relative over the 14 tracked bodies, every step an env is alive, including the
@@ -77,11 +78,13 @@ def evaluation_library(policy: TrainedPolicy, reference: str | Path | None, rand
 
 
 @torch.inference_mode()
-def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
-    """One episode per env from the env's (re)start with ``policy.act(obs TensorDict) -> actions``;
-    returns the ``summarize`` dict."""
+def run_episodes(vec, policy: TrainedPolicy, seed: int = 0, action_noise: float = 0.0) -> dict:
+    """One episode per env from the env's (re)start with ``policy.act(obs TensorDict) -> actions``,
+    plus zero-mean Gaussian noise of std ``action_noise`` (action units, every joint; drawn from
+    a generator seeded with ``seed``) when positive; returns the ``summarize`` dict."""
     obs, _ = vec.reset(seed=seed)
     n = vec.num_envs
+    noise = torch.Generator(device=vec.device).manual_seed(seed) if action_noise > 0.0 else None
     clip_ids = vec.command.clip.cpu().numpy()
     acc = EpisodeAccumulator(n, vec.device)
     objects = None
@@ -90,6 +93,8 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
     max_steps = int(vec.motion.clip_length.max()) + 1
     for _ in range(max_steps):
         actions = policy.act(TensorDict(dict(obs), batch_size=[n], device=vec.device))
+        if noise is not None:
+            actions = actions + action_noise * torch.randn(actions.shape, device=actions.device, generator=noise)
         obs, _, terminated, truncated, info = vec.step(actions)
         alive = ~acc.finished
         state = vec.tracking_state
@@ -105,9 +110,12 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0) -> dict:
 
 
 def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None, num_envs: int | None = None,
-             device: str | None = None, randomize: bool = False, seed: int = 0, last_only: bool = False) -> dict:
+             device: str | None = None, randomize: bool = False, seed: int = 0, last_only: bool = False,
+             action_noise: float = 0.0) -> dict:
     """Results of one checkpoint, or of every checkpoint of a run folder (oldest first; only
-    the latest with ``last_only``)."""
+    the latest with ``last_only``); ``action_noise``: see ``run_episodes``."""
+    if not 0.0 <= action_noise < float("inf"):  # NaN fails too
+        raise ValueError(f"--action-noise must be a finite std >= 0, got {action_noise}")
     target = Path(run_or_checkpoint)
     ckpts = runs.checkpoints(target) if target.is_dir() and not last_only else [runs.resolve_checkpoint(target)]
     torch_device = resolve_device(device)
@@ -123,7 +131,8 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
     results = []
     for ckpt in ckpts:
         policy = first if ckpt == first.checkpoint else load_policy(ckpt, torch_device)
-        result = {"checkpoint": str(ckpt.path), "iteration": ckpt.iteration, **run_episodes(vec, policy, seed)}
+        result = {"checkpoint": str(ckpt.path), "iteration": ckpt.iteration,
+                  **run_episodes(vec, policy, seed, action_noise)}
         results.append(result)
         line = (f"iteration {ckpt.iteration:>6}: success {100 * result['success_rate']:5.1f} %  "
                 f"MPJPE {result['mpjpe_mm']:7.1f} mm (heading-aligned {result['mpjpe_heading_aligned_mm']:5.1f})")
@@ -140,7 +149,9 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         "reference": {"name": library.name, "path": library.source,
                       "skipped": [{"clip": c.path, "error": c.error} for c in library.skipped]},
         "protocol": {"randomize": randomize, "num_envs": num_envs, "seed": seed, "device": str(torch_device),
-                     "start_frame": 0, "action": "deterministic mean", "mpjpe": "root-relative, 14 bodies, mm",
+                     "start_frame": 0,
+                     "action": "deterministic mean" + (f" + Gaussian noise std {action_noise:g}" if action_noise else ""),
+                     "mpjpe": "root-relative, 14 bodies, mm",
                      "mpjpe_heading_aligned": "diagnostic: the same after turning the reference by the anchors' "
                                               "yaw difference (heading drift not charged)",
                      "objects": "position error world cm (mean over moving objects), orientation deg; "
@@ -182,6 +193,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
                         "noise (pushes off) to measure robustness")
     parser.add_argument("--last", action="store_true", help="of a run folder, only the latest checkpoint")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--action-noise", type=float, default=0.0, metavar="STD",
+                        help="add zero-mean Gaussian noise of this std to every action (action units, e.g. the "
+                             "policy's learned std, to see what its exploration costs; default 0)")
     parser.add_argument("--json", help="write the results here (atomically)")
     parser.add_argument("--plot", help="PNG of MPJPE and success against the checkpoint iteration")
 
@@ -189,7 +203,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     try:
         results = evaluate(args.run, args.reference, args.num_envs, args.device, args.randomize, args.seed,
-                           args.last)
+                           args.last, args.action_noise)
     except (runs.RunError, InvalidReferenceError, ValueError, gymnasium.error.Error) as exc:
         print(f"otr evaluate: {exc}", file=sys.stderr)
         return 2

@@ -235,10 +235,16 @@ def test_replaying_reference_joint_targets_on_a_standing_clip_succeeds_within_30
     ref = standing_reference(duration_s=0.5).save(tmp_path / "stand.npz")
     env = make_vec_env("OTR-G1-Track-v0", ref, 2, "cpu", eval_env_overrides({}, randomize=False), evaluation=True)
     result = run_episodes(env.unwrapped, ReplayReference())
+    # --action-noise: Gaussian noise on the same actions, reproducible from the seed; the
+    # replay's error can only grow with it (0.5 action units ≈ 0.1-0.2 rad of PD target noise)
+    quiet = run_episodes(env.unwrapped, ReplayReference(), action_noise=0.0)
+    noisy = [run_episodes(env.unwrapped, ReplayReference(), seed=3, action_noise=0.5) for _ in range(2)]
     env.close()
     assert result["success_rate"] == 1.0
     assert result["frames"] == 2 * 25
     assert 1.0 < result["mpjpe_mm"] < 30.0
+    assert quiet["mpjpe_mm"] == result["mpjpe_mm"]
+    assert noisy[0]["mpjpe_mm"] == noisy[1]["mpjpe_mm"] > result["mpjpe_mm"] + 1.0
 
 
 def test_play_renders_an_mp4_of_the_policy(resumed_run, walk_ref, tmp_path):
@@ -259,6 +265,8 @@ def test_play_renders_an_mp4_of_the_policy(resumed_run, walk_ref, tmp_path):
     (["train", "--resume", "no_such_run", "--device", "cpu"], "no_such_run"),
     (["train", "--device", "cpu"], "--reference is required"),
     (["evaluate", "no_such_run", "--reference", "x.npz"], "no_such_run"),
+    (["evaluate", "no_such_run", "--action-noise", "-0.1"], "--action-noise must be a finite std >= 0, got -0.1"),
+    (["evaluate", "no_such_run", "--action-noise", "nan"], "--action-noise must be a finite std >= 0, got nan"),
     (["export", "no_such_run", "--onnx", "p.onnx"], "no_such_run"),
     (["play", "no_such_run", "--video", "v.mp4"], "no_such_run"),
 ])
