@@ -11,7 +11,7 @@ how many iterations fit into a 20-minute budget. Each mode builds a fresh PPO fr
 ``agents.config.TrainCfg`` (same seed), fills its rollout storage with random observations,
 rewards and 1 % resets (``--steps`` policy and value passes, timed as "rollout"), and times
 ``--updates`` updates after one untimed warm-up update (which pays ``torch.compile``'s
-compilation; its time is printed apart). Modes, each a ``TrainCfg`` setting:
+compilation; its time is printed apart). Modes, each the ``otr train --set`` it stands for:
 
 - ``fp32``: float32, every run in README;
 - ``tf32``: ``tf32_matmul`` (float32 matmuls on TF32 tensor cores; CUDA only);
@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import io
 import sys
 import time
@@ -38,30 +37,27 @@ from types import SimpleNamespace
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-#: mode -> the TrainCfg fields it sets
+#: mode -> the ``otr train --set`` overrides it stands for
 MODES = {
-    "fp32": {},
-    "tf32": {"tf32_matmul": True},
-    "bf16": {"algorithm.use_mixed_precision": True},
-    "compile": {"torch_compile_mode": "default"},
+    "fp32": [],
+    "tf32": ["tf32_matmul=true"],
+    "bf16": ["algorithm.use_mixed_precision=true"],
+    "compile": ["torch_compile_mode=default"],
 }
 
 
 def mode_config(mode: str, num_envs: int, steps: int, epochs: int, mini_batches: int):
-    """The TrainCfg of ``mode`` (KeyError names an unknown mode)."""
-    from agents.config import TrainCfg
+    """The TrainCfg that ``otr train`` would build for ``mode``'s overrides and these sizes
+    (KeyError names an unknown mode)."""
+    from agents.config import load_train_config
+    from agents.train import parse_sets
+    from otr_gym.config import merge
 
     if mode not in MODES:
         raise KeyError(f"mode {mode!r}: one of {', '.join(MODES)}")
-    cfg = TrainCfg(num_envs=num_envs, num_steps_per_env=steps)
-    algorithm = dataclasses.replace(cfg.algorithm, num_learning_epochs=epochs, num_mini_batches=mini_batches)
-    top = {}
-    for key, value in MODES[mode].items():
-        if key.startswith("algorithm."):
-            algorithm = dataclasses.replace(algorithm, **{key.split(".", 1)[1]: value})
-        else:
-            top[key] = value
-    return dataclasses.replace(cfg, algorithm=algorithm, **top)
+    sizes = {"num_envs": num_envs, "num_steps_per_env": steps,
+             "algorithm": {"num_learning_epochs": epochs, "num_mini_batches": mini_batches}}
+    return load_train_config(overrides=merge(sizes, parse_sets(MODES[mode])))
 
 
 def _sync(device: str) -> None:
@@ -152,8 +148,7 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         lines.append(f"| {r['mode']} | {r['rollout_s']:.3f} | {r['update_s']:.3f} | {r['mini_batch_ms']:.2f} "
                      f"| {base['update_s'] / r['update_s']:.2f}x | {r['warmup_update_s']:.2f} "
-                     f"| {r['losses'].get('value', float('nan')):.3g} "
-                     f"| {r['losses'].get('surrogate', float('nan')):.3g} |")
+                     f"| {r['losses']['value']:.3g} | {r['losses']['surrogate']:.3g} |")
     return "\n".join(lines)
 
 

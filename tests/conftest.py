@@ -25,6 +25,16 @@ def benchmark_sets(name: str) -> dict:
     return parse_sets((BENCHMARKS / name).read_text().split())
 
 
+def load_benchmark(name: str):
+    """The module of the script ``benchmarks/NAME.py`` (the folder is not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     if not (SHARED_DATA / "README.md").is_file():

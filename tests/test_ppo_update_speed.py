@@ -3,22 +3,17 @@ and its table compares them against the first row."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
+from conftest import load_benchmark
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "ppo_update_speed.py"
 SMALL = {"device": "cpu", "num_envs": 64, "steps": 4, "epochs": 1, "mini_batches": 2, "updates": 1}
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("ppo_update_speed", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("ppo_update_speed")
 
 
 def test_float32_and_bfloat16_updates_are_timed_and_move_the_weights(bench):

@@ -4,26 +4,21 @@ with two probe seeds, played back under object draws, ranked, resumed without re
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from clips import clip
+from conftest import load_benchmark
 
 from otr_gym.reference import Reference
 from retarget.problem import resample_demonstration
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "reference_seeds.py"
-
 
 @pytest.fixture(scope="module")
 def seeds_module():
-    spec = importlib.util.spec_from_file_location("reference_seeds", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("reference_seeds")
 
 
 def test_seed_ranges_are_parsed_or_refused(seeds_module):
