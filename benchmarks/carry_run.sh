@@ -7,12 +7,27 @@
 # RUNS_DIR) and the same `train` command resumes the run. Used by the `carry` stage of
 # train_box.sh and train_library.sh.
 #
-#   benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON]
+# A run still training has no LATEST_RUN yet (the train stage writes it when its process ends),
+# and a detached run that a lost machine would cut off is exactly what carry is for. So with
+# TRAIN_LOG given and no LATEST_RUN, the run folder is the log's last `run folder:` line; once
+# that folder holds a checkpoint, LATEST_RUN is written to name it (the train stage would resume
+# it) and packed.
+#
+#   benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON [TRAIN_LOG]]
 set -euo pipefail
-latest=${1:?usage: benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON]}
-tar_out=${2:?usage: benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON]}
+usage="usage: benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON [TRAIN_LOG]]"
+latest=${1:?$usage}
+tar_out=${2:?$usage}
 py=${3:-python3}
-[ -f "$latest" ] || { echo "$latest: no trained run (run the train stage first)" >&2; exit 1; }
+log=${4:-}
+if [ ! -f "$latest" ] && [ -n "$log" ] && [ -f "$log" ]; then
+  running=$(sed -n 's/^run folder: //p' "$log" | tail -1)
+  if [ -n "$running" ] && [ -d "$running" ]; then
+    "$py" -m agents.runs latest "$running" > /dev/null || exit 1  # names the folder that has no checkpoint yet
+    echo "$running" > "$latest"
+  fi
+fi
+[ -f "$latest" ] || { echo "$latest: no trained run${log:+ and no run folder in $log} (run the train stage first)" >&2; exit 1; }
 run=$(cat "$latest")
 last=$("$py" -m agents.runs latest "$run")
 mkdir -p "$(dirname "$tar_out")"

@@ -12,7 +12,8 @@
 # builds the env and compiles MuJoCo-Warp's kernels, 2-3 min), then MINUTES=8 twice more, then
 # `report` (same OUT_DIR and RUNS_DIR each time: the run folder survives between commands while
 # the machine stays warm). To go on on another machine: `carry` writes OUT_DIR/run.tar.gz (RUNS_DIR's
-# LATEST_RUN and the run folder with only its latest checkpoint; benchmarks/carry_run.sh);
+# LATEST_RUN and the run folder with only its latest checkpoint, also of a run still training;
+# benchmarks/carry_run.sh);
 # `tar xf run.tar.gz` in the repository root there (`-C /` for an absolute RUNS_DIR such as
 # /tmp/box/runs), then `train` with the same RUNS_DIR resumes.
 #
@@ -122,7 +123,7 @@ prune() {
 }
 
 carry() {  # a device command returns files of at most 16 MiB: the latest checkpoint only
-  "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar.gz" "$py"
+  "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar.gz" "$py" "$out/train.log"
 }
 
 case "$stage" in

@@ -34,6 +34,7 @@
 #     On to another machine, or back from one (a device command returns files of at most 16 MiB):
 #     `carry` writes OUT_DIR/run.tar.gz (RUNS_DIR's LATEST_RUN, the run folder without checkpoints,
 #     its latest checkpoint; 7.7 MB for the 8-clip library at 30 min); `tar xf` it in the repository root.
+#     It also packs a run that is still training (detached: benchmarks/detached.sh), from train.log.
 # (c) Issue 16 (a 2-GPU host): benchmarks/train_library.sh scaling out/scaling REFS/smplh_walk_jog_turn.npz
 #
 # Knobs (environment): NUM_ENVS (4096, per GPU), MINUTES (8), GPUS (1 for train; 2 for scaling),
@@ -217,6 +218,6 @@ case "$stage" in
   train) train ;;
   report) report ;;
   scaling) scaling ;;
-  carry) "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar.gz" "$py" ;;
+  carry) "$(dirname "$0")/carry_run.sh" "$latest" "$out/run.tar.gz" "$py" "$out/train.log" ;;
   *) echo "unknown stage '$stage' ($usage)" >&2; exit 2 ;;
 esac

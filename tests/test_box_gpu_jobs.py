@@ -141,3 +141,44 @@ def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path, sc
         f.unlink()
     result = stage("carry")
     assert result.returncode == 1 and "holds no checkpoint" in result.stderr and run.name in result.stderr
+
+
+@pytest.mark.parametrize("script, args", [("train_box.sh", ["out", "ref.npz"]), ("train_library.sh", ["out"])])
+def test_carry_packs_a_run_that_is_still_training(tmp_path, script, args):
+    """While the train stage's process runs there is no LATEST_RUN yet (it is written when the
+    process ends), and a detached run on a machine that may be lost is what `carry` is for: it
+    takes the run folder from OUT_DIR/train.log's last `run folder:` line, refuses it by name
+    while it holds no checkpoint, and once it has one writes LATEST_RUN (which the train stage
+    resumes) and packs both."""
+    carry = Path(__file__).resolve().parents[1] / "benchmarks" / script
+    old = tmp_path / "runs" / "x" / "OTR-G1-Track-v0_walk_20261128-010101"
+    run = tmp_path / "runs" / "x" / "OTR-G1-Track-v0_smplh_walk_jog_turn_20261129-091220"
+    for folder in (old, run):
+        folder.mkdir(parents=True)
+        (folder / "config.yaml").write_text("train: {}\n")
+    (old / "model_50.pt").write_bytes(b"o")
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "train.log").write_text(
+        f"run folder: runs/x/{old.name}\nLearning iteration 50/100\nrun folder: runs/x/{run.name}\n")
+
+    def stage() -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(carry), "carry", *args], cwd=tmp_path, capture_output=True,
+                              text=True, env={**os.environ, "RUNS_DIR": "runs/x"}, timeout=60)
+
+    result = stage()  # the new run has not saved its first checkpoint yet
+    assert result.returncode == 1 and "holds no checkpoint" in result.stderr and run.name in result.stderr
+    assert not (tmp_path / "runs" / "x" / "LATEST_RUN").exists()
+
+    (run / "model_25.pt").write_bytes(b"x" * 25)
+    result = stage()
+    assert result.returncode == 0, result.stderr
+    assert "checkpoint model_25.pt" in result.stdout
+    assert (tmp_path / "runs" / "x" / "LATEST_RUN").read_text().strip() == f"runs/x/{run.name}"
+    with tarfile.open(tmp_path / "out" / "run.tar.gz") as tar:
+        files = sorted(m.name for m in tar.getmembers() if m.isfile())
+    assert files == ["runs/x/LATEST_RUN", f"runs/x/{run.name}/config.yaml", f"runs/x/{run.name}/model_25.pt"]
+
+    (tmp_path / "out" / "train.log").unlink()
+    (tmp_path / "runs" / "x" / "LATEST_RUN").unlink()
+    result = stage()  # neither a finished run nor a log
+    assert result.returncode == 1 and "no trained run" in result.stderr
