@@ -20,16 +20,15 @@ latest=${1:?$usage}
 tar_out=${2:?$usage}
 py=${3:-python3}
 log=${4:-}
-if [ ! -f "$latest" ] && [ -n "$log" ] && [ -f "$log" ]; then
-  running=$(sed -n 's/^run folder: //p' "$log" | tail -1)
-  if [ -n "$running" ] && [ -d "$running" ]; then
-    "$py" -m agents.runs latest "$running" > /dev/null || exit 1  # names the folder that has no checkpoint yet
-    echo "$running" > "$latest"
-  fi
+if [ -f "$latest" ]; then
+  run=$(cat "$latest")
+else
+  run=$([ -n "$log" ] && [ -f "$log" ] && sed -n 's/^run folder: //p' "$log" | tail -1) || true
+  [ -n "$run" ] && [ -d "$run" ] ||
+    { echo "$latest: no trained run${log:+ and no run folder in $log} (run the train stage first)" >&2; exit 1; }
 fi
-[ -f "$latest" ] || { echo "$latest: no trained run${log:+ and no run folder in $log} (run the train stage first)" >&2; exit 1; }
-run=$(cat "$latest")
-last=$("$py" -m agents.runs latest "$run")
+last=$("$py" -m agents.runs latest "$run")  # names a folder that has no checkpoint yet
+[ -f "$latest" ] || echo "$run" > "$latest"  # only once it has one: the train stage resumes it
 mkdir -p "$(dirname "$tar_out")"
 # a file list, not --exclude: tar's exclusions would drop the checkpoint named on the command line too
 { echo "$latest"; find "$run" -type f ! -name '*.pt' ! -name '*.onnx'; echo "$last"; } |
