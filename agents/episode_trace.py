@@ -12,8 +12,13 @@ over the moving objects, and whether a robot–object proximity window of the re
 (the gates of the contact rewards: a hand near an object, from the reach to the release). The
 object error is then also split into the phases before the first window, in a window, between
 windows and after the last one, which tells a policy that carries well but sets the object down
-off its mark from one that loses it in the hands. It
-names what ended the episode: the termination terms that fired, or the clip's end.
+off its mark from one that loses it in the hands. Per step it also keeps each end effector's
+height off its reference (the quantity of the ``ee_height`` termination, which ends most
+failed episodes), each joint's distance from its reference angle and the torque its actuator
+applied as a share of the joint's effort limit: a joint far from its reference at a small share
+of its effort is one the policy did not drive there (a learning gap), one pinned at its limit one
+the robot could not (a capability gap). It names what ended the episode: the termination terms
+that fired, or the clip's end.
 ``--start-frame K`` starts the episode on the reference's frame K instead (the clip cut there,
 ``Reference.subclip``): whether a failure comes from drift carried from the start or from the
 passage itself.
@@ -45,6 +50,7 @@ from envs.mdp.metrics import (
     object_orientation_error_rad,
     object_position_error_m,
 )
+from otr_gym import robot
 from otr_gym.flags import true_intervals
 from otr_gym.io import save_figure, write_json
 
@@ -75,6 +81,11 @@ class EpisodeTrace:
     # per step: (ahead, left) of the robot's anchor from the reference's, cm, the reference's heading frame
     anchor_offset_cm: list[list[float]] | None = None
     object_offset_cm: list[list[float]] | None = None  # the same for the moving objects (their mean), cm
+    end_effector_names: list[str] | None = None  # the ee_height termination's bodies (ankles, wrists)
+    ee_height_cm: list[list[float]] | None = None  # per step, per end effector: z − reference z (cm, aligned)
+    ee_height_threshold_cm: float | None = None  # the run's ee_height termination, if any
+    joint_error_rad: list[list[float]] | None = None  # per step, per joint (robot.JOINT_NAMES): q − q_ref
+    effort_fraction: list[list[float]] | None = None  # per step, per joint: |actuator torque| / effort limit
 
     @property
     def steps(self) -> int:
@@ -87,6 +98,24 @@ class EpisodeTrace:
             return []
         means = np.asarray(self.body_error_mm).mean(0)
         return sorted(zip(self.body_names, means.tolist()), key=lambda kv: -kv[1])
+
+    def worst_end_effector(self, step: int) -> tuple[str, float]:
+        """(end effector, its height off the reference in cm) with the largest |offset| at ``step``."""
+        heights = self.ee_height_cm[step]
+        k = int(np.argmax(np.abs(heights)))
+        return self.end_effector_names[k], float(heights[k])
+
+    def joints_off_reference(self, last_steps: int = 25, count: int = 3) -> list[tuple[str, float, float, float]]:
+        """(joint, mean q − q_ref in rad, mean and peak share of its effort limit) over the
+        episode's last ``last_steps`` steps, for the ``count`` joints with the largest mean
+        |q − q_ref| there, largest first. Empty when the joints were not recorded."""
+        if not self.joint_error_rad:
+            return []
+        error = np.asarray(self.joint_error_rad)[-last_steps:]
+        effort = np.asarray(self.effort_fraction)[-last_steps:]
+        order = np.argsort(-np.abs(error).mean(0))[:count]
+        return [(robot.JOINT_NAMES[j], float(error[:, j].mean()), float(effort[:, j].mean()), float(effort[:, j].max()))
+                for j in order]
 
     #: the object phases, in clip order
     PHASES = ("before", "in window", "between windows", "after")
@@ -139,7 +168,9 @@ class EpisodeTrace:
         objects = self.object_pos_error_cm is not None
         offsets = self.anchor_offset_cm is not None
         object_offsets = objects and self.object_offset_cm is not None
+        limbs = bool(self.ee_height_cm) and bool(self.joint_error_rad)
         head = ("| frame | MPJPE mm | anchor lag cm |" + (" anchor ahead / left cm |" if offsets else "")
+                + (" end effector farthest in height, cm | joint farthest, rad (share of effort) |" if limbs else "")
                 + (" object error cm | object height cm | object orientation deg |" if objects else "")
                 + (" object ahead / left cm |" if object_offsets else ""))
         out = [head, "|" + "---|" * (head.count("|") - 1)]
@@ -148,6 +179,11 @@ class EpisodeTrace:
             row = f"| {self.frame[i]} | {self.mpjpe_mm[i]:.1f} | {self.anchor_lag_cm[i]:.1f} |"
             if offsets:
                 row += f" {self.anchor_offset_cm[i][0]:+.1f} / {self.anchor_offset_cm[i][1]:+.1f} |"
+            if limbs:
+                ee, cm = self.worst_end_effector(i)
+                j = int(np.argmax(np.abs(self.joint_error_rad[i])))
+                row += (f" {ee} {cm:+.1f} | {robot.JOINT_NAMES[j]} {self.joint_error_rad[i][j]:+.2f}"
+                        f" ({100 * self.effort_fraction[i][j]:.0f} %) |")
             if objects:
                 row += (f" {self.object_pos_error_cm[i]:.1f} | {self.object_height_error_cm[i]:+.1f} |"
                         f" {self.object_ori_error_deg[i]:.1f} |")
@@ -180,7 +216,12 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     has_objects = vec.tracking_state.objects is not None
     term = vec.task.cfg.terminations.get("object_pos")
     threshold = term.params.get("threshold_m") if term is not None else None
-    names = ("frame", "mpjpe", "bodies", "lag", "offset", "pos", "height", "ori", "window", "obj_offset")
+    ee_term = vec.task.cfg.terminations.get("ee_height")
+    ee_threshold = ee_term.params.get("threshold_m") if ee_term is not None else None
+    ee = vec.tracking_state.end_effectors
+    effort = torch.as_tensor(robot.EFFORT_LIMIT, dtype=torch.float32, device=vec.device)
+    names = ("frame", "mpjpe", "bodies", "lag", "offset", "pos", "height", "ori", "window", "obj_offset",
+             "ee", "joint", "effort")
     cols: dict[str, list] = {k: [] for k in names}
     ended_by, success = [], False
     try:
@@ -195,6 +236,9 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
             cols["bodies"].append(bodies_mm.tolist())
             cols["lag"].append(100.0 * float(anchor_horizontal_error_m(s)[0]))
             cols["offset"].append((100.0 * anchor_offset_heading_m(s)[0]).tolist())
+            cols["ee"].append((100.0 * (s.body_pos_w[0, ee, 2] - s.ref_body_pos_aligned_w[0, ee, 2])).tolist())
+            cols["joint"].append((s.joint_pos[0] - s.ref_joint_pos[0]).tolist())
+            cols["effort"].append((vec.task.backend.joint_torque_nm[0].abs() / effort).tolist())
             if has_objects:
                 o = s.objects
                 cols["pos"].append(100.0 * float(object_position_error_m(s)[0].mean()))
@@ -220,7 +264,10 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
         object_offset_cm=cols["obj_offset"] if has_objects else None,
         anchor_offset_cm=cols["offset"], ended_by=ended_by, success=success,
         object_termination_cm=None if threshold is None else 100.0 * float(threshold),
-        body_names=list(vec.tracking_state.body_names), body_error_mm=cols["bodies"])
+        body_names=list(vec.tracking_state.body_names), body_error_mm=cols["bodies"],
+        end_effector_names=[vec.tracking_state.body_names[k] for k in ee.tolist()], ee_height_cm=cols["ee"],
+        ee_height_threshold_cm=None if ee_threshold is None else 100.0 * float(ee_threshold),
+        joint_error_rad=cols["joint"], effort_fraction=cols["effort"])
 
 
 def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
@@ -235,8 +282,10 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     objects = trace.object_pos_error_cm is not None
-    fig, axes = plt.subplots(1, 3 if objects else 1, figsize=(15 if objects else 5.5, 3.6), squeeze=False)
-    axes = axes[0]
+    limbs = bool(trace.ee_height_cm) and bool(trace.joint_error_rad)
+    panels = 1 + 2 * limbs + 2 * objects
+    fig, axes = plt.subplots(1, panels, figsize=(5.2 * panels, 3.6), squeeze=False)
+    axes = list(axes[0])
     frames = np.asarray(trace.frame)
     axes[0].plot(frames, trace.mpjpe_mm, lw=1.1, label="MPJPE (mm)")
     if trace.body_error_mm:
@@ -249,6 +298,25 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
         axes[0].plot(frames, ahead, lw=1.0, ls="--", label="anchor ahead (+) / behind (−) (mm)")
         axes[0].axhline(0.0, color="k", lw=0.5)
     axes[0].set_title("tracking", fontsize=9)
+    if limbs:
+        ee_ax, joint_ax = axes.pop(1), axes.pop(1)
+        for name, column in zip(trace.end_effector_names, np.asarray(trace.ee_height_cm).T, strict=True):
+            ee_ax.plot(frames, column, lw=1.0, label=name)
+        if trace.ee_height_threshold_cm is not None:
+            for sign in (1, -1):
+                ee_ax.axhline(sign * trace.ee_height_threshold_cm, color="k", lw=0.8, ls="--",
+                              label="ee_height termination" if sign > 0 else None)
+        ee_ax.set_title("end effectors: height − reference (cm)", fontsize=9)
+        effort_ax = joint_ax.twinx()
+        error, effort = np.asarray(trace.joint_error_rad), np.asarray(trace.effort_fraction)
+        for k, (name, *_) in enumerate(trace.joints_off_reference()):
+            j = robot.JOINT_NAMES.index(name)
+            joint_ax.plot(frames, error[:, j], lw=1.1, color=f"C{k}", label=f"{name} q − q_ref (rad)")
+            effort_ax.plot(frames, effort[:, j], lw=0.8, ls=":", color=f"C{k}")
+        effort_ax.set_ylim(0.0, 1.05)
+        effort_ax.set_ylabel("torque / effort limit (dotted)", fontsize=8)
+        joint_ax.set_title("joints farthest from their reference at the end", fontsize=9)
+        axes += [ee_ax, joint_ax]
     if objects:
         axes[1].plot(frames, trace.object_pos_error_cm, lw=1.1, label="position error")
         axes[1].plot(frames, trace.object_height_error_cm, lw=1.1, label="height (object − reference)")
@@ -302,6 +370,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")
     print("root-relative error per body, mean over the episode (mm): "
           + ", ".join(f"{name} {mm:.1f}" for name, mm in trace.body_means_mm()))
+    if trace.ee_height_cm:
+        limit = "" if trace.ee_height_threshold_cm is None else f"; the termination at ±{trace.ee_height_threshold_cm:.0f}"
+        print(f"end effectors' height off their reference at the last step (cm, robot − reference{limit}): "
+              + ", ".join(f"{name} {cm:+.1f}" for name, cm in zip(trace.end_effector_names, trace.ee_height_cm[-1],
+                                                                  strict=True)))
+    joints = trace.joints_off_reference()
+    if joints:
+        print(f"joints farthest from their reference over the last {min(25, trace.steps)} steps "
+              "(mean q − q_ref in rad; mean / peak torque as a share of the joint's effort limit): "
+              + ", ".join(f"{name} {rad:+.2f} ({100 * mean:.0f} / {100 * peak:.0f} %)" for name, rad, mean, peak in joints))
     phases = trace.object_phases()
     if phases:
         print("object error by the reference's robot–object windows (cm, steps, share of the error): "

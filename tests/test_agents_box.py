@@ -17,7 +17,7 @@ from agents.evaluate import evaluate
 from agents.export import export_onnx, read_metadata
 from agents.plots import read_scalars
 from agents.train import parse_sets
-from otr_gym import cli
+from otr_gym import cli, robot
 from otr_gym.reference import Reference
 
 
@@ -109,8 +109,27 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     means = trace.body_means_mm()
     assert [m for _, m in means] == sorted((m for _, m in means), reverse=True)
     assert np.mean([m for _, m in means]) == pytest.approx(final["mpjpe_mm"], rel=1e-5)
+    # the end effectors' heights are the ee_height termination's quantity: inside its band while
+    # the episode runs, outside it where that term ended it
+    heights = np.abs(np.asarray(trace.ee_height_cm))
+    assert trace.end_effector_names == ["left_ankle_roll_link", "right_ankle_roll_link", "left_wrist_yaw_link",
+                                        "right_wrist_yaw_link"]
+    assert trace.ee_height_threshold_cm == pytest.approx(25.0)
+    assert np.all(heights[:-1] <= 25.0 + 1e-4)
+    assert ("ee_height" in trace.ended_by) == bool(heights[-1].max() > 25.0)
+    # joints: q − q_ref per joint; torques within the effort limits, not all idle
+    error, effort = np.asarray(trace.joint_error_rad), np.asarray(trace.effort_fraction)
+    assert error.shape == effort.shape == (trace.steps, 29)
+    assert np.all(effort <= 1.0 + 1e-4) and effort.mean() > 0.01
+    joints = trace.joints_off_reference(last_steps=5)
+    assert len(joints) == 3 and abs(joints[0][1]) >= abs(joints[1][1]) >= abs(joints[2][1])
+    j = robot.JOINT_NAMES.index(joints[0][0])
+    assert joints[0][1] == pytest.approx(error[-5:, j].mean()) and joints[0][3] == pytest.approx(effort[-5:, j].max())
     assert episode_trace.main([str(box_run), "--every", "5", "--json", str(tmp_path / "t.json"), "--png", str(tmp_path / "t.png")]) == 0
     out = capsys.readouterr().out
+    ee, cm = trace.worst_end_effector(4)
+    assert f"| {ee} {cm:+.1f} |" in out  # the fifth step's row
+    assert "end effectors' height off their reference at the last step" in out and "; the termination at ±25" in out
     assert f"{trace.steps} steps" in out and out.count("\n| ") >= 2
     assert f"{means[0][0]} {means[0][1]:.1f}" in out  # the per-body line, largest first
     assert f"mean over the episode): {offsets[:, 0].mean():+.1f} / {offsets[:, 1].mean():+.1f}" in out

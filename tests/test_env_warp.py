@@ -7,6 +7,7 @@ cached in ~/.cache/warp afterwards); the fixtures are module-scoped so that happ
 from __future__ import annotations
 
 import gymnasium
+import mujoco
 import numpy as np
 import pytest
 import torch
@@ -14,6 +15,7 @@ from gymnasium.vector import AutoresetMode
 
 import otr_gym  # noqa: F401  (registers the environments)
 from envs.backends import build_sim_model
+from envs.backends.mujoco_backend import MuJoCoBackend
 from envs.backends.warp_backend import WarpBackend
 from envs.config import TrackEnvCfg
 from envs.tracking import make_task
@@ -175,6 +177,35 @@ def test_graph_captured_and_eager_physics_are_identical(standing_reference):
     assert captured.contact_force_n[:, feet].sum(-1).min() > 0.5 * weight
     others = [i for i in range(len(bodies)) if i not in feet]
     assert captured.contact_force_n[:, others].max() == 0.0
+
+
+def test_joint_torques_are_the_last_substeps_pd_forces_clamped_to_the_effort_limits():
+    """Both backends report, after a step, the torques of the step's last physics substep:
+    kp·(q* − q) − kd·q̇ at the state that substep started from, clamped to ±effort (checked
+    against MuJoCo run by hand from the same state). Targets up to 3 rad off the default pose drive
+    some joints past their effort limit."""
+    model = build_sim_model(TrackEnvCfg().sim.contact_bodies)
+    bodies = TrackEnvCfg().sim.contact_bodies
+    cpu = MuJoCoBackend(model, 2, contact_bodies=bodies)
+    warp_backend = WarpBackend(model, 2, "cpu", contact_bodies=bodies)
+    gen = torch.Generator().manual_seed(1)
+    ctrl = torch.as_tensor(robot.DEFAULT_JOINT_POS, dtype=torch.float32) + 3.0 * (2 * torch.rand(2, 29, generator=gen) - 1)
+    for backend in (cpu, warp_backend):
+        backend.step(ctrl)
+    by_hand = np.zeros((2, 29))
+    for w in range(2):
+        d = mujoco.MjData(model)
+        mujoco.mj_resetDataKeyframe(model, d, 0)
+        d.ctrl[:] = ctrl[w].double().numpy()
+        for _ in range(cpu.decimation - 1):
+            mujoco.mj_step(model, d)
+        q, qd = d.qpos[7:], d.qvel[6:]
+        by_hand[w] = np.clip(robot.KP * (d.ctrl - q) - robot.KD * qd, -robot.EFFORT_LIMIT, robot.EFFORT_LIMIT)
+    np.testing.assert_allclose(cpu.joint_torque_nm.numpy(), by_hand, rtol=1e-4, atol=1e-3)
+    np.testing.assert_allclose(warp_backend.joint_torque_nm.numpy(), by_hand, rtol=1e-3, atol=2e-2)
+    saturated = np.isclose(np.abs(by_hand), robot.EFFORT_LIMIT)
+    assert saturated.any() and not saturated.all()
+    assert np.all(np.abs(warp_backend.joint_torque_nm.numpy()) <= robot.EFFORT_LIMIT + 1e-3)
 
 
 def test_warp_reset_recomputes_body_poses_for_the_new_state(backend_pair):

@@ -18,6 +18,8 @@ from collections.abc import Sequence
 import mujoco
 import torch
 
+from otr_gym import robot
+
 
 #: |qpos| or |qvel| beyond this (m, rad, m/s, rad/s) means the world's physics diverged: no G1
 #: state comes near it, and it keeps squares and exponentials of the MDP terms finite.
@@ -80,6 +82,19 @@ class PhysicsBackend(ABC):
     @abstractmethod
     def _contact_forces(self) -> torch.Tensor:
         """(N, C + P) contact-force maxima of the bodies, then of the pairs."""
+
+    @property
+    @abstractmethod
+    def _qfrc_actuator(self) -> torch.Tensor:
+        """(N, nv) MuJoCo's ``qfrc_actuator`` of the last physics substep."""
+
+    @property
+    def joint_torque_nm(self) -> torch.Tensor:
+        """(N, 29) what the actuators applied to each robot joint (the dofs after the robot's free
+        root, before any object's) in the last physics substep of the last ``step`` (N·m), after
+        MuJoCo's clamp to the joint's ``actuatorfrcrange``: the torque the robot used, to set
+        against ``otr_gym.robot.EFFORT_LIMIT``. Stale after ``reset``."""
+        return self._qfrc_actuator[:, 6:6 + robot.NUM_JOINTS]
 
     @property
     def contact_force_n(self) -> torch.Tensor:

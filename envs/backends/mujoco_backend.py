@@ -82,6 +82,10 @@ class MuJoCoBackend(PhysicsBackend):
         return self._contact
 
     @property
+    def _qfrc_actuator(self) -> torch.Tensor:
+        return self._qfrc_actuator_t
+
+    @property
     def unstable(self) -> torch.Tensor:
         return super().unstable | self._reset_by_mujoco
 
@@ -154,3 +158,4 @@ class MuJoCoBackend(PhysicsBackend):
         self._qpos, self._qvel = stack("qpos"), stack("qvel")
         self._xpos, self._xquat = stack("xpos"), stack("xquat")
         self._cvel_t, self._subtree_com_t = stack("cvel"), stack("subtree_com")
+        self._qfrc_actuator_t = stack("qfrc_actuator")

@@ -78,7 +78,7 @@ class WarpBackend(PhysicsBackend):
             self._contact_max = wp.zeros((num_worlds, len(self._contact_sensor_names)), dtype=float)
         d, m = self._d, self._m
         self._qpos_t, self._qvel_t, self._ctrl_t = wp.to_torch(d.qpos), wp.to_torch(d.qvel), wp.to_torch(d.ctrl)
-        self._warmstart_t = wp.to_torch(d.qacc_warmstart)
+        self._warmstart_t, self._qfrc_actuator_t = wp.to_torch(d.qacc_warmstart), wp.to_torch(d.qfrc_actuator)
         self._xpos_t, self._xquat_t = wp.to_torch(d.xpos), wp.to_torch(d.xquat)
         self._cvel_v, self._subtree_com_v = wp.to_torch(d.cvel), wp.to_torch(d.subtree_com)
         self._contact_t = wp.to_torch(self._contact_max)
@@ -125,6 +125,10 @@ class WarpBackend(PhysicsBackend):
     @property
     def _contact_forces(self) -> torch.Tensor:
         return self._contact_t
+
+    @property
+    def _qfrc_actuator(self) -> torch.Tensor:
+        return self._qfrc_actuator_t
 
     @property
     def warp_model(self) -> mjw.Model:
