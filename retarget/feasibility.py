@@ -21,7 +21,12 @@ rate (50 fps, RL_SPEC §2: the clip is resampled at load exactly like this), fra
   vertex within ``contact_height_m``; ``retarget.evaluation.feet.least_moving_speed``, so
   heel/toe pivots do not count, while a swing foot skimming the floor does: it would drag);
 * **flight**: frames with no part of the robot on the floor, grouped into phases with their
-  duration (hands, knees or any other link on the floor support a crawl like feet do).
+  duration (hands, knees or any other link on the floor support a crawl like feet do);
+* **penetration**: how deep the robot's collision geometry (the sole points, and every other
+  collision capsule's lowest point) lies below the ground, and which link. The simulation pushes
+  such a link back out, so a policy cannot put it where the reference does: a reference made
+  for another hand or foot model (Holosoma's crawl: the rubber hands' fingers 9 cm into its
+  ramp and platform) asks for wrist angles the robot can only miss.
 
 Inverse dynamics (Pinocchio). v and a are Lie-group finite differences of the configurations
 (``pin.difference``: the free-flyer twist in the pelvis frame, exact for a constant twist).
@@ -103,6 +108,9 @@ class FeasibilityCfg:
     #: A foot or hand off the line of its neighbours by more (m): 15 g at 50 fps, beyond a
     #: heel strike's deceleration.
     limb_jump_m: float = 0.03
+    #: Collision geometry deeper than this below the ground (m) is flagged: the simulation's
+    #: contacts push it out (our references keep the hands within 2 cm of their ground).
+    penetration_m: float = 0.03
     merge_gap_frames: int = 2  # flagged frames closer than this join one interval
     peak_separation_s: float = 0.2  # the hardest-frames table keeps one frame per window
 
@@ -140,6 +148,8 @@ class FeasibilityReport:
     unsupported_moment_nm: np.ndarray  # (T,) N·m
     stance: np.ndarray  # (T, 2) bool: the foot's lowest vertex within contact_height_m
     slide_speed_mps: np.ndarray  # (T, 2) least-moving-vertex speed, NaN when not in stance
+    penetration_m: np.ndarray  # (T,) m: how deep the deepest collision point lies below the ground (0: none)
+    penetration_link: tuple[str, ...]  # (T,) the link it belongs to ("" where none is below)
     weight_n: float
     ground: str = "floor z = 0"  # what the robot stands on (``Ground.describe``)
 
@@ -177,6 +187,7 @@ class FeasibilityReport:
             "unsupported": self.unsupported_fraction / c.unsupported_fraction,
             "sliding": np.nan_to_num(self.slide_speed_mps, nan=0.0).max(axis=1) / c.slide_speed_mps,
             "flight": self.flight.astype(float),
+            "penetration": self.penetration_m / c.penetration_m,
         }
 
     def severity(self) -> np.ndarray:
@@ -215,6 +226,8 @@ class FeasibilityReport:
         for a, b in self.flight_phases():
             if a <= f <= b:
                 why["flight"] = f"{(b - a + 1) / self.fps:.2f} s ({t[a]:.2f}-{t[b]:.2f} s)"
+        if self.penetration_m[f] >= c.penetration_m:
+            why["penetration"] = f"{self.penetration_link[f]} {100 * self.penetration_m[f]:.1f} cm into the ground"
         return why
 
     def hardest(self, count: int = 10) -> list[HardFrame]:
@@ -274,6 +287,11 @@ class FeasibilityReport:
                          "total_s": float(self.flight.sum() / self.fps),
                          "unsupported_mean_fraction": [float(self.unsupported_fraction[a:b + 1].mean())
                                                        for a, b in phases]}
+        f = int(np.argmax(self.penetration_m))
+        out["penetration"] = {"peak_m": float(self.penetration_m[f]),
+                              "link": self.penetration_link[f],
+                              "time_s": float(t[f]),
+                              "frames_over": int((self.penetration_m >= self.cfg.penetration_m).sum())}
         out["flagged_frames"] = int((self.severity() >= 1.0).sum())
         out["hardest"] = [{"frame": h.frame, "time_s": float(t[h.frame]), "severity": h.severity,
                            "run_s": [float(t[h.start]), float(t[h.stop])], "why": h.reasons} for h in self.hardest()]
@@ -287,6 +305,7 @@ class _Model:
     sole_frames: tuple[tuple[int, ...], tuple[int, ...]]  # pinocchio frame ids per foot
     sole_points_b: tuple[np.ndarray, np.ndarray]  # (P, 3) in the ankle_roll_link frame
     link_frames: tuple[tuple[int, float], ...]  # other links: (frame at a capsule end centre, radius)
+    link_bodies: tuple[str, ...]  # the body of each of ``link_frames``
     mass_kg: float
 
 
@@ -314,7 +333,7 @@ def _model() -> _Model:
                                                 pin.FrameType.OP_FRAME)))
         frames.append(tuple(ids))
         points.append(corners)
-    links = []
+    links, bodies = [], []
     for cap in collision_capsules():
         if cap.body in robot.FEET:
             continue
@@ -325,8 +344,9 @@ def _model() -> _Model:
             fid = model.addFrame(pin.Frame(f"{cap.name}_end{k}", parent.parentJoint, body, placement,
                                            pin.FrameType.OP_FRAME))
             links.append((fid, cap.radius))
+            bodies.append(cap.body)
     mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
-    return _Model(model, tuple(frames), tuple(points), tuple(links), mass)
+    return _Model(model, tuple(frames), tuple(points), tuple(links), tuple(bodies), mass)
 
 
 def _cone_edges(mu: float, normal: np.ndarray | None = None) -> np.ndarray:
@@ -419,6 +439,10 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     other_support = np.zeros(T, bool)
     unsup_f = np.zeros(T)
     unsup_m = np.zeros(T)
+    point_bodies = [robot.FEET[k] for k, _ in sole_ids] + list(mdl.link_bodies)
+    radii = np.array([0.0] * len(sole_ids) + [r for _, r in mdl.link_frames])
+    depth = np.zeros(T)
+    deepest: list[str] = [""] * T
     for t in range(T):
         tau = pin.rnea(m, data, q[t], v[t], a[t]).copy()
         mass = pin.crba(m, data, q[t])
@@ -427,6 +451,10 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         pin.updateFramePlacements(m, data)
         height, normal = ground.under(np.array([data.oMf[fid].translation for _, fid in sole_ids]
                                                + [data.oMf[fid].translation for fid, _ in mdl.link_frames]))
+        below = radii - height  # how far each point's lowest surface lies under the ground
+        i = int(np.argmax(below))
+        if below[i] > 0.0:
+            depth[t], deepest[t] = below[i], point_bodies[i]
         cols, owners, point_edges = [], [], []
         for i, (k, fid) in enumerate(sole_ids):
             if height[i] <= cfg.contact_height_m:
@@ -471,7 +499,7 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         torque_ratio=np.abs(torque) / robot.EFFORT_LIMIT, foot_force_w=foot_force, other_force_w=other_force,
         other_support=other_support, unsupported_force_n=unsup_f,
         unsupported_moment_nm=unsup_m, stance=stance, slide_speed_mps=slide, weight_n=weight,
-        ground=ground.describe())
+        ground=ground.describe(), penetration_m=depth, penetration_link=tuple(deepest))
 
 
 def _off_neighbours_line(p: np.ndarray) -> np.ndarray:
@@ -534,6 +562,10 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     phases = ", ".join(f"{x:.2f}" for x in fl["durations_s"]) or "none"
     lines.append(f"  {'flight (nothing on the ground)':31s} {fl['phases']} phase(s), {fl['total_s']:.2f} s in total "
                  f"(s: {phases}); other links than the feet on the ground {r.other_support.sum()} frames")
+    p = s["penetration"]
+    where = f" ({p['link']}, t {p['time_s']:.2f} s)" if p["link"] else ""
+    lines.append(f"  {'collision geometry in the ground':31s} deepest {100 * p['peak_m']:.1f} cm{where}; "
+                 f"{p['frames_over']} frames over {100 * c.penetration_m:g} cm")
     if fl["phases"]:
         airborne = ", ".join(f"{100 * x:.0f}%" for x in fl["unsupported_mean_fraction"])
         lines.append(f"  {'not ballistic in the air':31s} unsupported force, mean over each flight: {airborne} of "
@@ -600,6 +632,9 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
     axes[5].axhline(10 * r.cfg.jump_m, color="k", lw=0.8, ls="--")
     axes[5].plot(t, 10 * r.limb_jump_m.max(axis=1), color="tab:purple", lw=0.9, label="largest limb jump (dm)")
     axes[5].axhline(10 * r.cfg.limb_jump_m, color="tab:purple", lw=0.8, ls=":")
+    if r.penetration_m.any():
+        axes[5].plot(t, 10 * r.penetration_m, color="tab:brown", lw=0.9, label="collision geometry in the ground (dm)")
+        axes[5].axhline(10 * r.cfg.penetration_m, color="tab:brown", lw=0.8, ls=":")
     axes[5].set_ylabel("m / dm", fontsize=8)
     axes[5].legend(fontsize=7, loc="upper right", ncol=2)
     axes[5].set_xlabel("time (s)")

@@ -1,6 +1,7 @@
 """Dynamic feasibility of references (retarget.feasibility) on generated G1 motions whose
 answers are known: a standing robot, a hover, a ballistic flight, an elbow faster than its
-motor, a sliding stance, a teleport, and torques checked against MuJoCo's inverse dynamics."""
+motor, a sliding stance, a teleport, a robot sunk into the floor, and torques checked against
+MuJoCo's inverse dynamics."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 
 from otr_gym import robot
 from otr_gym.reference import Reference
+from otr_gym.robot_geometry import collision_capsules
+from otr_gym.rotations import quat_from_euler_xyz
 from retarget import verify
 from retarget.feasibility import (
     GRAVITY,
@@ -49,6 +52,7 @@ def test_standing_still_is_feasible_and_the_feet_carry_the_weight(standing):
     assert np.nanmax(r.slide_speed_mps) < 1e-9
     assert r.torque_ratio.max() < 0.25 and r.joint_speed_ratio.max() < 1e-9
     assert r.intervals == [] and r.hardest() == []
+    assert r.penetration_m.max() < 1e-3  # the soles on the floor, not in it
     assert format_report(r).endswith("no frame reaches a limit")
 
 
@@ -139,6 +143,52 @@ def test_a_foot_that_snaps_for_one_frame_is_a_limb_jump_not_a_pelvis_jump():
     assert "limb jumps (feet, hands)" in format_report(r)
 
 
+def test_a_robot_sunk_into_the_floor_is_flagged_by_its_soles_depth():
+    """Sunk 5 and 8 cm (the standing soles sit 3 mm above the floor): the depths differ by the
+    3 cm, the soles are what is deepest, and every frame is flagged."""
+    depth = {}
+    for sink in (0.05, 0.08):
+        qpos = _clip(20)
+        qpos[:, 2] -= sink
+        depth[sink] = r = check_feasibility(_ref(qpos))
+        assert set(r.penetration_link) <= set(robot.FEET)
+        assert r.summary()["penetration"]["frames_over"] == 20
+    np.testing.assert_allclose(depth[0.08].penetration_m - depth[0.05].penetration_m, 0.03, atol=1e-9)
+    r = depth[0.05]
+    assert 0.045 < r.penetration_m[0] <= 0.05
+    cm = f"{100 * r.penetration_m[10]:.1f} cm"
+    assert r.reasons(10)["penetration"].endswith(f"{cm} into the ground")
+    assert f"collision geometry in the ground deepest {cm}" in format_report(r)
+
+
+def _lowest_capsule_point(qpos: np.ndarray) -> tuple[float, str]:
+    """(z of the lowest point, its body) over the collision capsules, from MuJoCo's kinematics."""
+    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    best = (np.inf, "")
+    for cap in collision_capsules():
+        g = model.geom(cap.name).id
+        half = model.geom_size[g, 1] if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE else 0.0
+        z = data.geom_xpos[g, 2] - abs(data.geom_xmat[g].reshape(3, 3)[2, 2]) * half - model.geom_size[g, 0]
+        best = min(best, (z, cap.body))
+    return best
+
+
+def test_a_robot_lying_face_down_in_the_floor_names_its_deepest_link():
+    """Pitched 120° forward and lowered until MuJoCo puts its lowest collision capsule 4 cm below
+    z = 0: the check finds the same depth at the same link (a capsule's lowest point, not a sole)."""
+    pose = robot.default_qpos()
+    pose[3:7] = quat_from_euler_xyz(0.0, np.deg2rad(120.0), 0.0)
+    lowest, body = _lowest_capsule_point(pose)
+    pose[2] -= lowest + 0.04
+    assert body == "torso_link"  # 8 cm lower than any other link's capsule in this pose
+    r = check_feasibility(_ref(np.tile(pose, (10, 1))))
+    np.testing.assert_allclose(r.penetration_m, 0.04, atol=2e-3)
+    assert set(r.penetration_link) == {body}
+
+
 def test_torques_match_mujoco_inverse_dynamics_of_the_same_motion():
     """Hovering (no contact) with every joint on a parabola: central differences are exact,
     so the joint torques must equal MuJoCo's ``mj_inverse`` (armature included) and the
@@ -182,3 +232,4 @@ def test_verify_prints_the_section_and_writes_picture_and_summary(tmp_path, caps
     summary = json.loads(js.read_text())
     assert summary["jump"]["peak_m"] == pytest.approx(0.05)
     assert summary["hardest"][0]["frame"] in (24, 25)
+    assert summary["penetration"]["peak_m"] < 1e-3 and summary["penetration"]["frames_over"] == 0
