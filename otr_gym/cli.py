@@ -20,6 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
     "verify": ("retarget.verify", "check a reference: penetration, limits and holds against its demonstration; "
                                   "dynamic feasibility (on its terrain too)"),
+    "clear-ground": ("retarget.ground_clearance", "lift a reference's arms out of the ground or its terrain "
+                                                  "(hands a reference put inside it)"),
     "variants": ("retarget.variants", "one demonstration, many references: substitute shapes and sizes (Table IV)"),
     "view": ("retarget.viewer", "web viewer (viser): references, objects, the person, contacts, metrics"),
     "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),

@@ -110,6 +110,46 @@ def collision_capsules() -> tuple[Capsule, ...]:
     return tuple(out)
 
 
+@dataclass(frozen=True)
+class CollisionPoint:
+    """A point of a collision geom, body frame, with the radius of the geom's surface around it."""
+
+    body: str
+    geom: str
+    point: np.ndarray  # (3,) m, body frame
+    radius: float  # m (0 for a box corner)
+
+
+@lru_cache(maxsize=1)
+def collision_points() -> tuple[CollisionPoint, ...]:
+    """The robot's geometry as the simulation collides it (collision geoms with a non-zero
+    contype or conaffinity), reduced to points whose balls reach as low as the geom does over any
+    plane: a capsule's two end-sphere centres, a sphere's centre (with the radius), a box's eight
+    corners (radius 0). So the geom's depth below a plane or an upward face is the deepest of
+    ``radius − height`` over its points. The coarse hand capsules the retargeter uses for
+    self-collision (contype 0) are not among them: the simulation's hands are the three boxes."""
+    m = _model()
+    capsule, sphere, box = (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE),
+                            int(mujoco.mjtGeom.mjGEOM_BOX))
+    out = []
+    for g in range(m.ngeom):
+        if m.geom_group[g] != COLLISION_GROUP or not (m.geom_contype[g] or m.geom_conaffinity[g]):
+            continue
+        kind, size, body, name = int(m.geom_type[g]), m.geom_size[g], m.body(m.geom_bodyid[g]).name, m.geom(g).name
+        rot, centre = quat_to_matrix(m.geom_quat[g]), m.geom_pos[g]
+        if kind == capsule:
+            points, radius = [centre - size[1] * rot[:, 2], centre + size[1] * rot[:, 2]], float(size[0])
+        elif kind == sphere:
+            points, radius = [centre], float(size[0])
+        elif kind == box:
+            signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+            points, radius = list(centre + (signs * size[:3]) @ rot.T), 0.0
+        else:
+            raise ValueError(f"{robot.G1_MJCF}: collision geom '{name}' of type {kind} has no point reduction")
+        out += [CollisionPoint(body, name, np.asarray(p, np.float64), radius) for p in points]
+    return tuple(out)
+
+
 def posed_vertices(mesh: LinkMesh, pos_w: np.ndarray, quat_w: np.ndarray) -> np.ndarray:
     """World vertices (…, V, 3) of a link mesh for body poses (…, 3) / (…, 4) wxyz."""
     rot = quat_to_matrix(np.asarray(quat_w, np.float64))

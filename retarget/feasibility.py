@@ -22,11 +22,12 @@ rate (50 fps, RL_SPEC §2: the clip is resampled at load exactly like this), fra
   heel/toe pivots do not count, while a swing foot skimming the floor does: it would drag);
 * **flight**: frames with no part of the robot on the floor, grouped into phases with their
   duration (hands, knees or any other link on the floor support a crawl like feet do);
-* **penetration**: how deep the robot's collision geometry (the sole points, and every other
-  collision capsule's lowest point) lies below the ground, and which link. The simulation pushes
-  such a link back out, so a policy cannot put it where the reference does: a reference made
-  for another hand or foot model (Holosoma's crawl: the rubber hands' fingers 9 cm into its
-  ramp and platform) asks for wrist angles the robot can only miss.
+* **penetration**: how deep the robot's collision geometry as the simulation has it
+  (``otr_gym.robot_geometry.collision_points``: capsules, spheres, the hands' boxes) lies below
+  the ground, and which link. The simulation pushes such a link back out, so a policy cannot
+  put it where the reference does: a reference that puts our hands in the ground (Holosoma's
+  crawl: 8.9 cm into its ramp and platform) asks for wrist angles the robot can only miss
+  (``otr clear-ground`` re-solves the arms out of it).
 
 Inverse dynamics (Pinocchio). v and a are Lie-group finite differences of the configurations
 (``pin.difference``: the free-flyer twist in the pelvis frame, exact for a constant twist).
@@ -70,7 +71,7 @@ import numpy as np
 
 from otr_gym import robot
 from otr_gym.flags import true_intervals
-from otr_gym.robot_geometry import collision_capsules, posed_vertices, visual_meshes
+from otr_gym.robot_geometry import collision_capsules, collision_points, posed_vertices, visual_meshes
 from otr_gym.rotations import quat_from_vector_pairs, quat_to_matrix, skew
 from retarget.evaluation.feet import least_moving_speed
 from retarget.ground import Ground
@@ -305,7 +306,7 @@ class _Model:
     sole_frames: tuple[tuple[int, ...], tuple[int, ...]]  # pinocchio frame ids per foot
     sole_points_b: tuple[np.ndarray, np.ndarray]  # (P, 3) in the ankle_roll_link frame
     link_frames: tuple[tuple[int, float], ...]  # other links: (frame at a capsule end centre, radius)
-    link_bodies: tuple[str, ...]  # the body of each of ``link_frames``
+    probe_frames: tuple[tuple[int, float, str], ...]  # collision_points: (frame, radius, body)
     mass_kg: float
 
 
@@ -333,7 +334,7 @@ def _model() -> _Model:
                                                 pin.FrameType.OP_FRAME)))
         frames.append(tuple(ids))
         points.append(corners)
-    links, bodies = [], []
+    links = []
     for cap in collision_capsules():
         if cap.body in robot.FEET:
             continue
@@ -344,9 +345,16 @@ def _model() -> _Model:
             fid = model.addFrame(pin.Frame(f"{cap.name}_end{k}", parent.parentJoint, body, placement,
                                            pin.FrameType.OP_FRAME))
             links.append((fid, cap.radius))
-            bodies.append(cap.body)
+    probes = []
+    for k, point in enumerate(collision_points()):
+        body = model.getFrameId(point.body)
+        parent = model.frames[body]
+        placement = parent.placement * pin.SE3(np.eye(3), point.point)
+        fid = model.addFrame(pin.Frame(f"{point.geom}_probe{k}", parent.parentJoint, body, placement,
+                                       pin.FrameType.OP_FRAME))
+        probes.append((fid, point.radius, point.body))
     mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
-    return _Model(model, tuple(frames), tuple(points), tuple(links), tuple(bodies), mass)
+    return _Model(model, tuple(frames), tuple(points), tuple(links), tuple(probes), mass)
 
 
 def _cone_edges(mu: float, normal: np.ndarray | None = None) -> np.ndarray:
@@ -439,8 +447,7 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     other_support = np.zeros(T, bool)
     unsup_f = np.zeros(T)
     unsup_m = np.zeros(T)
-    point_bodies = [robot.FEET[k] for k, _ in sole_ids] + list(mdl.link_bodies)
-    radii = np.array([0.0] * len(sole_ids) + [r for _, r in mdl.link_frames])
+    probe_radius = np.array([r for _, r, _ in mdl.probe_frames])
     depth = np.zeros(T)
     deepest: list[str] = [""] * T
     for t in range(T):
@@ -451,10 +458,11 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         pin.updateFramePlacements(m, data)
         height, normal = ground.under(np.array([data.oMf[fid].translation for _, fid in sole_ids]
                                                + [data.oMf[fid].translation for fid, _ in mdl.link_frames]))
-        below = radii - height  # how far each point's lowest surface lies under the ground
+        probe_height, _ = ground.under(np.array([data.oMf[fid].translation for fid, _, _ in mdl.probe_frames]))
+        below = probe_radius - probe_height  # how far each geom's lowest reach lies under the ground
         i = int(np.argmax(below))
         if below[i] > 0.0:
-            depth[t], deepest[t] = below[i], point_bodies[i]
+            depth[t], deepest[t] = below[i], mdl.probe_frames[i][2]
         cols, owners, point_edges = [], [], []
         for i, (k, fid) in enumerate(sole_ids):
             if height[i] <= cfg.contact_height_m:

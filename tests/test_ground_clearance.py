@@ -1,0 +1,92 @@
+"""Arms re-solved out of the ground (retarget.ground_clearance): a standing G1 lowered until its
+hanging hands are 4 cm in the floor, and Holosoma's crawl on its slope (shared data)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from otr_gym import cli, robot
+from otr_gym.reference import Reference
+from otr_gym.robot_geometry import collision_points
+from retarget import ground_clearance
+from retarget.feasibility import check_feasibility
+from retarget.ground import Ground
+from retarget.ground_clearance import ARM_BODIES, ARM_JOINTS, ClearanceCfg, clear_ground
+
+FPS = 50.0
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+CRAWL = DATA / "references" / "holosoma" / "motion_crawl_slope.npz"
+SLOPE = DATA / "references" / "holosoma" / "terrain_slope.obj"
+
+
+def _lowest_reach(qpos: np.ndarray, bodies) -> np.ndarray:
+    """(T,) z of the lowest reach of the collision geometry of ``bodies``, by MuJoCo's kinematics."""
+    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
+    data = mujoco.MjData(model)
+    points = [p for p in collision_points() if p.body in bodies]
+    out = np.empty(len(qpos))
+    for t, q in enumerate(qpos):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        out[t] = min((data.xpos[model.body(p.body).id] + data.xmat[model.body(p.body).id].reshape(3, 3) @ p.point)[2]
+                     - p.radius for p in points)
+    return out
+
+
+@pytest.fixture(scope="module")
+def sunk_hands():
+    """10 frames: the default pose, lowered 0.62 m on frames 3-6 (the hanging hands' lowest
+    reach, 0.577 m up when standing, then 4.3 cm in the floor; the wrists' own capsules above it)."""
+    qpos = np.tile(robot.default_qpos(), (10, 1))
+    qpos[3:7, 2] -= 0.62
+    reference = Reference.from_qpos(qpos, FPS)
+    return reference, *clear_ground(reference)
+
+
+def test_sunk_hands_are_lifted_to_the_clearance_by_the_arm_joints_alone(sunk_hands):
+    reference, cleared, report = sunk_hands
+    before, after = _lowest_reach(reference.qpos(), ARM_BODIES), _lowest_reach(cleared.qpos(), ARM_BODIES)
+    assert before[3:7] == pytest.approx(-0.043, abs=2e-3)
+    assert after.min() >= ClearanceCfg.clearance_m - 2e-4  # checked by MuJoCo, not the solver's own model
+    np.testing.assert_allclose(report.depth_before_m[3:7], 0.043 + ClearanceCfg.clearance_m, atol=2e-3)
+    assert report.depth_after_m.max() <= 2e-4 and report.qp_failures == 0
+    # only the arm joints of the sunk frames moved; the clear frames are the input's exactly
+    arm = np.isin(robot.JOINT_NAMES, ARM_JOINTS)
+    q0, q1 = reference.qpos(), cleared.qpos()
+    assert np.array_equal(q0[:, :7], q1[:, :7]) and np.array_equal(q0[:, 7:][:, ~arm], q1[:, 7:][:, ~arm])
+    assert np.array_equal(np.delete(q0, np.s_[3:7], axis=0), np.delete(q1, np.s_[3:7], axis=0))
+    assert report.frames_changed == 4 and np.all(report.joint_change_rad[3:7] > 0.05)
+    # the cheapest joints do the work: every moved frame turns a wrist more than any shoulder
+    change = np.abs(q1 - q0)[3:7, 7:]
+    wrist = [robot.JOINT_NAMES.index(j) for j in ARM_JOINTS if "_wrist_" in j]
+    shoulder = [robot.JOINT_NAMES.index(j) for j in ARM_JOINTS if "_shoulder_" in j]
+    assert np.all(change[:, wrist].max(1) > change[:, shoulder].max(1))
+    assert cleared.metadata["ground_clearance"]["frames_changed"] == 4
+
+
+def test_the_command_names_a_missing_file_and_refuses_a_negative_clearance(tmp_path, capsys):
+    assert ground_clearance.main([str(tmp_path / "none.npz"), str(tmp_path / "out.npz")]) == 2
+    assert "none.npz" in capsys.readouterr().err
+    assert ground_clearance.main([str(tmp_path / "none.npz"), str(tmp_path / "out.npz"), "--clearance-m", "-1"]) == 2
+    assert "--clearance-m must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "out.npz").exists()
+
+
+@pytest.mark.skipif(not CRAWL.exists(), reason=f"shared data absent: {CRAWL}")
+def test_holosomas_crawl_keeps_its_hands_on_its_slope(tmp_path, capsys):
+    """Holosoma's crawl puts the G1's hands up to 9 cm into its ramp and platform; cleared, none
+    is more than 3 mm in (verify's measure) and no hand jumps between frames."""
+    ground = Ground.from_mesh(SLOPE)
+    original = check_feasibility(Reference.load(CRAWL), ground=ground)
+    assert original.penetration_m.max() > 0.08 and original.summary()["penetration"]["frames_over"] > 100
+    out = tmp_path / "crawl.npz"
+    assert cli.main(["clear-ground", str(CRAWL), str(out), "--terrain", str(SLOPE)]) == 0
+    assert "arm joints changed on" in capsys.readouterr().out
+    cleared = check_feasibility(Reference.load(out), ground=ground)
+    arm = np.isin(np.asarray(cleared.penetration_link), ARM_BODIES)
+    assert cleared.penetration_m[arm].max(initial=0.0) < 0.003
+    assert cleared.limb_jump_m[:, 2:].max() < 0.03  # the hands: no snap from the per-frame solves
