@@ -154,8 +154,11 @@ def clear_ground(reference, ground: Ground | None = None, cfg: ClearanceCfg | No
             if g.min() >= -cfg.tolerance_m:
                 break
             x = q[arms.joints_q]
-            step = workspace.solve(H, 2.0 * w * (x - q_ref[arms.joints_q]), rows, -g,
-                                   np.maximum(lo - x, -cfg.step_rad), np.minimum(hi - x, cfg.step_rad))
+            # the trust region, inside the joint limits; a reference already beyond a limit may
+            # stay there (the boxes always hold 0) but not go farther
+            box_lo = np.minimum(np.maximum(lo - x, -cfg.step_rad), 0.0)
+            box_hi = np.maximum(np.minimum(hi - x, cfg.step_rad), 0.0)
+            step = workspace.solve(H, 2.0 * w * (x - q_ref[arms.joints_q]), rows, -g, box_lo, box_hi)
             q[arms.joints_q] = x + step
         g, _ = _clearances(arms, data, q, ground, cfg, jacobians=False)
         after[t] = max(0.0, -g.min())

@@ -68,6 +68,19 @@ def test_sunk_hands_are_lifted_to_the_clearance_by_the_arm_joints_alone(sunk_han
     assert cleared.metadata["ground_clearance"]["frames_changed"] == 4
 
 
+def test_a_joint_already_beyond_its_limit_is_not_pushed_farther():
+    """The left wrist pitch 0.5 rad past its upper limit on the sunk frames: the solve still
+    lifts the hands, and that joint ends no farther out than it began."""
+    qpos = np.tile(robot.default_qpos(), (6, 1))
+    qpos[2:4, 2] -= 0.62
+    j = robot.JOINT_NAMES.index("left_wrist_pitch_joint")
+    qpos[2:4, 7 + j] = robot.JOINT_UPPER[j] + 0.5  # farther out than one trust-region step (0.4)
+    reference = Reference.from_qpos(qpos, FPS)
+    cleared, report = clear_ground(reference)
+    assert report.depth_before_m[2:4].min() > 0.02 and report.depth_after_m.max() <= 2e-4 and report.qp_failures == 0
+    assert np.all(cleared.qpos()[2:4, 7 + j] <= reference.qpos()[2:4, 7 + j] + 1e-6)  # ProxQP eps 1e-7 per step
+
+
 def test_the_command_names_a_missing_file_and_refuses_a_negative_clearance(tmp_path, capsys):
     assert ground_clearance.main([str(tmp_path / "none.npz"), str(tmp_path / "out.npz")]) == 2
     assert "none.npz" in capsys.readouterr().err
