@@ -68,7 +68,7 @@ class ClearanceReport:
 
     def lines(self) -> list[str]:
         changed = self.joint_change_rad > 0
-        out = [f"frames with an arm below the ground: {int((self.depth_before_m > 0).sum())} of "
+        out = [f"frames with an arm point below its clearance: {int((self.depth_before_m > 0).sum())} of "
                f"{self.depth_before_m.size}, deepest {100 * self.depth_before_m.max():.1f} cm; after: "
                f"{int((self.depth_after_m > 0).sum())}, deepest {100 * self.depth_after_m.max():.2f} cm"]
         if changed.any():
