@@ -193,6 +193,13 @@ class EpisodeTrace:
         return out
 
 
+def _termination_cm(cfg, name: str) -> float | None:
+    """The distance (cm) of the run's termination term ``name``; None when the run has none."""
+    term = cfg.terminations.get(name)
+    threshold = None if term is None else term.params.get("threshold_m")
+    return None if threshold is None else 100.0 * float(threshold)
+
+
 @torch.inference_mode()
 def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = None, device: str = "cpu",
                   seed: int = 0, start_frame: int = 0) -> EpisodeTrace:
@@ -214,10 +221,6 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
     vec = env.unwrapped
     obs, _ = vec.reset(seed=seed)
     has_objects = vec.tracking_state.objects is not None
-    term = vec.task.cfg.terminations.get("object_pos")
-    threshold = term.params.get("threshold_m") if term is not None else None
-    ee_term = vec.task.cfg.terminations.get("ee_height")
-    ee_threshold = ee_term.params.get("threshold_m") if ee_term is not None else None
     ee = vec.tracking_state.end_effectors
     effort = torch.as_tensor(robot.EFFORT_LIMIT, dtype=torch.float32, device=vec.device)
     names = ("frame", "mpjpe", "bodies", "lag", "offset", "pos", "height", "ori", "window", "obj_offset",
@@ -263,10 +266,10 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
         object_in_window=cols["window"] if has_objects else None,
         object_offset_cm=cols["obj_offset"] if has_objects else None,
         anchor_offset_cm=cols["offset"], ended_by=ended_by, success=success,
-        object_termination_cm=None if threshold is None else 100.0 * float(threshold),
+        object_termination_cm=_termination_cm(vec.task.cfg, "object_pos"),
         body_names=list(vec.tracking_state.body_names), body_error_mm=cols["bodies"],
         end_effector_names=[vec.tracking_state.body_names[k] for k in ee.tolist()], ee_height_cm=cols["ee"],
-        ee_height_threshold_cm=None if ee_threshold is None else 100.0 * float(ee_threshold),
+        ee_height_threshold_cm=_termination_cm(vec.task.cfg, "ee_height"),
         joint_error_rad=cols["joint"], effort_fraction=cols["effort"])
 
 

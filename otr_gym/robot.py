@@ -227,6 +227,17 @@ def load_pinocchio_model():
     return model
 
 
+def add_point_frame(model, body: str, point_b, name: str) -> int:
+    """Add to the Pinocchio ``model`` (``load_pinocchio_model``) an operational frame named
+    ``name`` at ``point_b`` (3,) m in the frame of ``body`` (the MJCF body frame); returns its id."""
+    import pinocchio as pin
+
+    parent_id = model.getFrameId(body)
+    parent = model.frames[parent_id]
+    placement = parent.placement * pin.SE3(np.eye(3), np.asarray(point_b, dtype=np.float64))
+    return model.addFrame(pin.Frame(name, parent.parentJoint, parent_id, placement, pin.FrameType.OP_FRAME))
+
+
 def qpos_mujoco_to_pinocchio(qpos: np.ndarray) -> np.ndarray:
     """[xyz, wxyz, q] -> [xyz, xyzw, q] on the last axis."""
     out = np.array(qpos, dtype=np.float64, copy=True)

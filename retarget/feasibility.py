@@ -313,9 +313,9 @@ class _Model:
 @lru_cache(maxsize=1)
 def _model() -> _Model:
     """The Pinocchio G1 with one operational frame per sole point (the corners, 2-D convex
-    hull, of each foot's collision capsules, on their underside) and one per end-sphere centre
-    of every other collision capsule."""
-    import pinocchio as pin
+    hull, of each foot's collision capsules, on their underside), one per end-sphere centre
+    of every other collision capsule, and one per ``collision_points`` point (the probes of the
+    penetration measure)."""
     from scipy.spatial import ConvexHull
 
     model = robot.load_pinocchio_model()
@@ -325,34 +325,13 @@ def _model() -> _Model:
         ends = np.concatenate([[c.p0, c.p1] for c in caps])
         ends[:, 2] -= max(c.radius for c in caps)  # the underside of the sole
         corners = ends[ConvexHull(ends[:, :2]).vertices]
-        body = model.getFrameId(foot)
-        parent = model.frames[body]
-        ids = []
-        for k, p in enumerate(corners):
-            placement = parent.placement * pin.SE3(np.eye(3), p)
-            ids.append(model.addFrame(pin.Frame(f"{foot}_sole{k}", parent.parentJoint, body, placement,
-                                                pin.FrameType.OP_FRAME)))
-        frames.append(tuple(ids))
+        frames.append(tuple(robot.add_point_frame(model, foot, p, f"{foot}_sole{k}") for k, p in enumerate(corners)))
         points.append(corners)
-    links = []
-    for cap in collision_capsules():
-        if cap.body in robot.FEET:
-            continue
-        body = model.getFrameId(cap.body)
-        parent = model.frames[body]
-        for k, p in enumerate({tuple(cap.p0), tuple(cap.p1)}):
-            placement = parent.placement * pin.SE3(np.eye(3), np.asarray(p))
-            fid = model.addFrame(pin.Frame(f"{cap.name}_end{k}", parent.parentJoint, body, placement,
-                                           pin.FrameType.OP_FRAME))
-            links.append((fid, cap.radius))
-    probes = []
-    for k, point in enumerate(collision_points()):
-        body = model.getFrameId(point.body)
-        parent = model.frames[body]
-        placement = parent.placement * pin.SE3(np.eye(3), point.point)
-        fid = model.addFrame(pin.Frame(f"{point.geom}_probe{k}", parent.parentJoint, body, placement,
-                                       pin.FrameType.OP_FRAME))
-        probes.append((fid, point.radius, point.body))
+    links = [(robot.add_point_frame(model, cap.body, p, f"{cap.name}_end{k}"), cap.radius)
+             for cap in collision_capsules() if cap.body not in robot.FEET
+             for k, p in enumerate({tuple(cap.p0), tuple(cap.p1)})]
+    probes = [(robot.add_point_frame(model, point.body, point.point, f"{point.geom}_probe{k}"), point.radius, point.body)
+              for k, point in enumerate(collision_points())]
     mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
     return _Model(model, tuple(frames), tuple(points), tuple(links), tuple(probes), mass)
 
@@ -448,6 +427,10 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     unsup_f = np.zeros(T)
     unsup_m = np.zeros(T)
     probe_radius = np.array([r for _, r, _ in mdl.probe_frames])
+    # one ground query per frame: the support points (soles, then capsule ends), then the probes
+    point_frames = ([fid for _, fid in sole_ids] + [fid for fid, _ in mdl.link_frames]
+                    + [fid for fid, _, _ in mdl.probe_frames])
+    n_support = len(sole_ids) + len(mdl.link_frames)
     depth = np.zeros(T)
     deepest: list[str] = [""] * T
     for t in range(T):
@@ -456,9 +439,8 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         accel_limit[t] = robot.EFFORT_LIMIT / np.diag(mass)[6:]
         pin.computeJointJacobians(m, data, q[t])
         pin.updateFramePlacements(m, data)
-        height, normal = ground.under(np.array([data.oMf[fid].translation for _, fid in sole_ids]
-                                               + [data.oMf[fid].translation for fid, _ in mdl.link_frames]))
-        probe_height, _ = ground.under(np.array([data.oMf[fid].translation for fid, _, _ in mdl.probe_frames]))
+        height, normal = ground.under(np.array([data.oMf[fid].translation for fid in point_frames]))
+        height, probe_height = height[:n_support], height[n_support:]
         below = probe_radius - probe_height  # how far each geom's lowest reach lies under the ground
         i = int(np.argmax(below))
         if below[i] > 0.0:

@@ -97,3 +97,14 @@ class Ground:
         n = self.normals[face[higher]]
         height[higher] = (p[higher, 2] - best_z[higher]) * n[:, 2]  # vertical gap -> distance along n
         normal[higher] = n
+
+
+def load_clip_on_ground(reference: str | Path, terrain: str | Path | None = None):
+    """(the ``Reference`` in ``reference``, the ``Ground`` it was recorded on: the floor, plus the
+    mesh in ``terrain`` if given), for the commands that take a clip and its terrain. A missing or
+    unreadable file raises a ``ValueError`` naming it (``InvalidReferenceError``,
+    ``InvalidMeshError``)."""
+    from otr_gym.reference import Reference
+
+    ground = Ground.from_mesh(terrain) if terrain else Ground.floor()
+    return Reference.load(reference), ground

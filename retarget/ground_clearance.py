@@ -88,41 +88,34 @@ class _Arms:
 
 @lru_cache(maxsize=1)
 def _arms() -> _Arms:
+    model = robot.load_pinocchio_model()
+    arm_points = [p for p in collision_points() if p.body in ARM_BODIES]
+    frames = tuple(robot.add_point_frame(model, p.body, p.point, f"{p.geom}_clearance{k}")
+                   for k, p in enumerate(arm_points))
+    index = np.array([robot.JOINT_NAMES.index(j) for j in ARM_JOINTS])
+    return _Arms(model, 6 + index, 7 + index, frames, np.array([p.radius for p in arm_points]))
+
+
+def _clearances(arms: _Arms, data, q: np.ndarray, ground: Ground, cfg: ClearanceCfg) -> tuple[np.ndarray, np.ndarray]:
+    """(g (P,) m: each point's lowest reach above ``clearance_m`` over the ground, negative
+    below; the ground's normal under each point (P, 3)) at configuration ``q``."""
     import pinocchio as pin
 
-    model = robot.load_pinocchio_model()
-    frames, radius = [], []
-    for k, point in enumerate(p for p in collision_points() if p.body in ARM_BODIES):
-        body = model.getFrameId(point.body)
-        parent = model.frames[body]
-        placement = parent.placement * pin.SE3(np.eye(3), point.point)
-        frames.append(model.addFrame(pin.Frame(f"{point.geom}_clearance{k}", parent.parentJoint, body, placement,
-                                               pin.FrameType.OP_FRAME)))
-        radius.append(point.radius)
-    index = np.array([robot.JOINT_NAMES.index(j) for j in ARM_JOINTS])
-    return _Arms(model, 6 + index, 7 + index, tuple(frames), np.asarray(radius))
+    pin.forwardKinematics(arms.pin_model, data, q)
+    pin.updateFramePlacements(arms.pin_model, data)
+    height, normal = ground.under(np.array([data.oMf[f].translation for f in arms.frames]))
+    return height - arms.radius - cfg.clearance_m, normal
 
 
-def _clearances(arms: _Arms, data, q: np.ndarray, ground: Ground, cfg: ClearanceCfg,
-                jacobians: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """(g (P,) m: height of each point's lowest reach above clearance_m, negative below;
-    with ``jacobians``, dg/dq_arm (P, A))."""
+def _clearance_rows(arms: _Arms, data, q: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """dg/dq_arm (P, A) at ``q``: each point's velocity along its ground normal per arm joint."""
     import pinocchio as pin
 
     m = arms.pin_model
-    if jacobians:
-        pin.computeJointJacobians(m, data, q)
-    else:
-        pin.forwardKinematics(m, data, q)
-    pin.updateFramePlacements(m, data)
-    points = np.array([data.oMf[f].translation for f in arms.frames])
-    height, normal = ground.under(points)
-    g = height - arms.radius - cfg.clearance_m
-    if not jacobians:
-        return g, None
+    pin.computeJointJacobians(m, data, q)
     rows = np.stack([normal[i] @ pin.getFrameJacobian(m, data, f, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3]
                      for i, f in enumerate(arms.frames)])
-    return g, rows[:, arms.joints_v]
+    return rows[:, arms.joints_v]
 
 
 def clear_ground(reference, ground: Ground | None = None, cfg: ClearanceCfg | None = None):
@@ -144,23 +137,23 @@ def clear_ground(reference, ground: Ground | None = None, cfg: ClearanceCfg | No
     before, after, change = np.zeros(T), np.zeros(T), np.zeros(T)
     for t in range(T):
         q_ref = q_all[t].copy()
-        g, _ = _clearances(arms, data, q_ref, ground, cfg, jacobians=False)
-        before[t] = max(0.0, -g.min())
-        if g.min() >= -cfg.tolerance_m:
-            continue
         q = q_ref.copy()
-        for _ in range(cfg.iterations):
-            g, rows = _clearances(arms, data, q, ground, cfg, jacobians=True)
-            if g.min() >= -cfg.tolerance_m:
+        for step_count in range(cfg.iterations + 1):
+            g, normal = _clearances(arms, data, q, ground, cfg)
+            if step_count == 0:
+                before[t] = max(0.0, -g.min())
+            if g.min() >= -cfg.tolerance_m or step_count == cfg.iterations:
                 break
             x = q[arms.joints_q]
             # the trust region, inside the joint limits; a reference already beyond a limit may
             # stay there (the boxes always hold 0) but not go farther
             box_lo = np.minimum(np.maximum(lo - x, -cfg.step_rad), 0.0)
             box_hi = np.maximum(np.minimum(hi - x, cfg.step_rad), 0.0)
-            step = workspace.solve(H, 2.0 * w * (x - q_ref[arms.joints_q]), rows, -g, box_lo, box_hi)
+            step = workspace.solve(H, 2.0 * w * (x - q_ref[arms.joints_q]), _clearance_rows(arms, data, q, normal),
+                                   -g, box_lo, box_hi)
             q[arms.joints_q] = x + step
-        g, _ = _clearances(arms, data, q, ground, cfg, jacobians=False)
+        if step_count == 0:  # clear as it was: the frame keeps its configuration
+            continue
         after[t] = max(0.0, -g.min())
         change[t] = np.abs(q[arms.joints_q] - q_ref[arms.joints_q]).max()
         q_all[t] = q
@@ -188,8 +181,7 @@ def main(args=None) -> int:
     import argparse
     import sys
 
-    from otr_gym.reference import InvalidReferenceError, Reference
-    from retarget.meshes import InvalidMeshError
+    from retarget.ground import load_clip_on_ground
 
     if not isinstance(args, argparse.Namespace):
         p = argparse.ArgumentParser(prog="python -m retarget.ground_clearance", description=__doc__.split("\n\n")[0])
@@ -199,9 +191,8 @@ def main(args=None) -> int:
         print("clear-ground: --clearance-m must be >= 0", file=sys.stderr)
         return 2
     try:
-        ground = Ground.from_mesh(args.terrain) if args.terrain else Ground.floor()
-        reference = Reference.load(args.reference)
-    except (InvalidMeshError, InvalidReferenceError, ValueError) as exc:
+        reference, ground = load_clip_on_ground(args.reference, args.terrain)
+    except ValueError as exc:  # InvalidReferenceError, InvalidMeshError: the file named
         print(f"clear-ground: {exc}", file=sys.stderr)
         return 2
     cleared, report = clear_ground(reference, ground, ClearanceCfg(clearance_m=args.clearance_m))

@@ -25,7 +25,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.robot_geometry import posed_vertices, visual_meshes
 from otr_gym.rotations import quat_to_matrix
-from retarget.meshes import InvalidMeshError, as_trimesh, object_mesh, signed_distance
+from retarget.meshes import as_trimesh, object_mesh, signed_distance
 from retarget.substitute import SubstituteObject
 
 
@@ -196,17 +196,15 @@ def main(args=None) -> int:
     import argparse
     import sys
 
-    from otr_gym.reference import InvalidReferenceError, Reference
-    from retarget.ground import Ground
+    from retarget.ground import load_clip_on_ground
 
     if not isinstance(args, argparse.Namespace):
         p = argparse.ArgumentParser(prog="python -m retarget.verify", description=__doc__.split("\n\n")[0])
         configure_parser(p)
         args = p.parse_args(args)
     try:
-        ground = Ground.from_mesh(args.terrain) if args.terrain else Ground.floor()
-        reference = Reference.load(args.reference)
-    except (InvalidMeshError, InvalidReferenceError, ValueError) as exc:
+        reference, ground = load_clip_on_ground(args.reference, args.terrain)
+    except ValueError as exc:  # InvalidReferenceError, InvalidMeshError: the file named
         print(f"otr verify: {exc}", file=sys.stderr)
         return 2
     if args.demo is not None:

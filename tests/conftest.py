@@ -25,6 +25,28 @@ def benchmark_sets(name: str) -> dict:
     return parse_sets((BENCHMARKS / name).read_text().split())
 
 
+def lowest_collision_reach(qpos, bodies=None) -> tuple[float, str]:
+    """(z in m, body) of the lowest reach of the G1's collision geometry (of ``bodies`` only, if
+    given) at MuJoCo qpos (36,), by MuJoCo's kinematics: an independent check of the Pinocchio
+    frames that feasibility and clear-ground put on ``collision_points``."""
+    import mujoco
+
+    from otr_gym import robot
+    from otr_gym.robot_geometry import collision_points
+
+    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
+    data = mujoco.MjData(model)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    reach = []
+    for p in collision_points():
+        if bodies is None or p.body in bodies:
+            b = model.body(p.body).id
+            reach.append(((data.xpos[b] + data.xmat[b].reshape(3, 3) @ p.point)[2] - p.radius, p.body))
+    z, body = min(reach)
+    return float(z), body
+
+
 def load_benchmark(name: str):
     """The module of the script ``benchmarks/NAME.py`` (the folder is not a package)."""
     import importlib.util

@@ -10,10 +10,10 @@ import json
 import mujoco
 import numpy as np
 import pytest
+from conftest import lowest_collision_reach
 
 from otr_gym import robot
 from otr_gym.reference import Reference
-from otr_gym.robot_geometry import collision_capsules
 from otr_gym.rotations import quat_from_euler_xyz
 from retarget import verify
 from retarget.feasibility import (
@@ -161,29 +161,14 @@ def test_a_robot_sunk_into_the_floor_is_flagged_by_its_soles_depth():
     assert f"collision geometry in the ground deepest {cm}" in format_report(r)
 
 
-def _lowest_capsule_point(qpos: np.ndarray) -> tuple[float, str]:
-    """(z of the lowest point, its body) over the collision capsules, from MuJoCo's kinematics."""
-    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
-    data = mujoco.MjData(model)
-    data.qpos[:] = qpos
-    mujoco.mj_kinematics(model, data)
-    best = (np.inf, "")
-    for cap in collision_capsules():
-        g = model.geom(cap.name).id
-        half = model.geom_size[g, 1] if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_CAPSULE else 0.0
-        z = data.geom_xpos[g, 2] - abs(data.geom_xmat[g].reshape(3, 3)[2, 2]) * half - model.geom_size[g, 0]
-        best = min(best, (z, cap.body))
-    return best
-
-
 def test_a_robot_lying_face_down_in_the_floor_names_its_deepest_link():
-    """Pitched 120° forward and lowered until MuJoCo puts its lowest collision capsule 4 cm below
+    """Pitched 120° forward and lowered until MuJoCo puts its lowest collision geometry 4 cm below
     z = 0: the check finds the same depth at the same link (a capsule's lowest point, not a sole)."""
     pose = robot.default_qpos()
     pose[3:7] = quat_from_euler_xyz(0.0, np.deg2rad(120.0), 0.0)
-    lowest, body = _lowest_capsule_point(pose)
+    lowest, body = lowest_collision_reach(pose)
     pose[2] -= lowest + 0.04
-    assert body == "torso_link"  # 8 cm lower than any other link's capsule in this pose
+    assert body == "torso_link"  # 8 cm lower than any other link's geometry in this pose
     r = check_feasibility(_ref(np.tile(pose, (10, 1))))
     np.testing.assert_allclose(r.penetration_m, 0.04, atol=2e-3)
     assert set(r.penetration_link) == {body}

@@ -3,38 +3,21 @@ hanging hands are 4 cm in the floor, and Holosoma's crawl on its slope (shared d
 
 from __future__ import annotations
 
-from pathlib import Path
 
-import mujoco
 import numpy as np
 import pytest
+from conftest import SHARED_DATA, lowest_collision_reach
 
 from otr_gym import cli, robot
 from otr_gym.reference import Reference
-from otr_gym.robot_geometry import collision_points
 from retarget import ground_clearance
 from retarget.feasibility import check_feasibility
 from retarget.ground import Ground
 from retarget.ground_clearance import ARM_BODIES, ARM_JOINTS, ClearanceCfg, clear_ground
 
 FPS = 50.0
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-CRAWL = DATA / "references" / "holosoma" / "motion_crawl_slope.npz"
-SLOPE = DATA / "references" / "holosoma" / "terrain_slope.obj"
-
-
-def _lowest_reach(qpos: np.ndarray, bodies) -> np.ndarray:
-    """(T,) z of the lowest reach of the collision geometry of ``bodies``, by MuJoCo's kinematics."""
-    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
-    data = mujoco.MjData(model)
-    points = [p for p in collision_points() if p.body in bodies]
-    out = np.empty(len(qpos))
-    for t, q in enumerate(qpos):
-        data.qpos[:] = q
-        mujoco.mj_kinematics(model, data)
-        out[t] = min((data.xpos[model.body(p.body).id] + data.xmat[model.body(p.body).id].reshape(3, 3) @ p.point)[2]
-                     - p.radius for p in points)
-    return out
+CRAWL = SHARED_DATA / "references" / "holosoma" / "motion_crawl_slope.npz"
+SLOPE = SHARED_DATA / "references" / "holosoma" / "terrain_slope.obj"
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +32,8 @@ def sunk_hands():
 
 def test_sunk_hands_are_lifted_to_the_clearance_by_the_arm_joints_alone(sunk_hands):
     reference, cleared, report = sunk_hands
-    before, after = _lowest_reach(reference.qpos(), ARM_BODIES), _lowest_reach(cleared.qpos(), ARM_BODIES)
+    before, after = ([lowest_collision_reach(q, ARM_BODIES)[0] for q in r.qpos()] for r in (reference, cleared))
+    before, after = np.array(before), np.array(after)
     assert before[3:7] == pytest.approx(-0.043, abs=2e-3)
     assert after.min() >= ClearanceCfg.clearance_m - 2e-4  # checked by MuJoCo, not the solver's own model
     np.testing.assert_allclose(report.depth_before_m[3:7], 0.043 + ClearanceCfg.clearance_m, atol=2e-3)
