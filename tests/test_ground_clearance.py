@@ -3,10 +3,12 @@ hanging hands are 4 cm in the floor, and Holosoma's crawl on its slope (shared d
 
 from __future__ import annotations
 
+import json
+
 
 import numpy as np
 import pytest
-from conftest import SHARED_DATA, lowest_collision_reach
+from conftest import SHARED_DATA, load_benchmark, lowest_collision_reach
 
 from otr_gym import cli, robot
 from otr_gym.reference import Reference
@@ -50,6 +52,23 @@ def test_sunk_hands_are_lifted_to_the_clearance_by_the_arm_joints_alone(sunk_han
     shoulder = [robot.JOINT_NAMES.index(j) for j in ARM_JOINTS if "_shoulder_" in j]
     assert np.all(change[:, wrist].max(1) > change[:, shoulder].max(1))
     assert cleared.metadata["ground_clearance"]["frames_changed"] == 4
+
+
+def test_the_surface_benchmark_sees_the_visual_hands_leave_the_floor(sunk_hands, tmp_path, capsys):
+    """benchmarks/surface_on_ground.py on the same clip before and after: the visual meshes'
+    hands (not the collision boxes the solve used) go from centimetres in the floor to out of it,
+    and every other number is per frame of the same clip."""
+    bench = load_benchmark("surface_on_ground")
+    reference, cleared, _ = sunk_hands
+    paths = [reference.save(tmp_path / "before" / "sunk.npz"), cleared.save(tmp_path / "after" / "sunk.npz")]
+    assert bench.main([str(p) for p in paths] + ["--json", str(tmp_path / "s.json")]) == 0
+    before, after = json.loads((tmp_path / "s.json").read_text())["rows"]
+    assert before["hands_m"] > 0.03 and before["hand_frames_over_1cm"] == 4
+    assert after["hands_m"] < 0.002 and after["hand_frames_over_1cm"] == 0
+    assert before["frames"] == after["frames"] == 10
+    out = capsys.readouterr().out
+    assert "| before/sunk.npz | 10 |" in out and "| after/sunk.npz | 10 |" in out
+    assert bench.main([str(tmp_path / "none.npz")]) == 2 and "none.npz" in capsys.readouterr().err
 
 
 def test_a_joint_already_beyond_its_limit_is_not_pushed_farther():
