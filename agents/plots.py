@@ -89,7 +89,7 @@ def plot_runs(run_dirs: list[str | Path], out_png: str | Path, labels: list[str]
         curves.append((scalars, dict(zip(its, minutes, strict=True))))
     panels = [(tag, title) for tag, title in TRAINING_PANELS.items()
               if tag != "Perf/total_fps" and any(tag in s for s, _ in curves)]
-    fig, axes = _panel_grid(len(panels))
+    fig, axes = panel_grid(len(panels))
     for ax, (tag, title) in zip(axes, panels, strict=True):
         for (scalars, minutes), label in zip(curves, labels, strict=True):
             if tag in scalars:
@@ -110,7 +110,7 @@ def plot_training(run_dir: str | Path, out_png: str | Path) -> Path:
     rewards = sorted(tag for tag in scalars if tag.startswith(REWARD_PREFIX))
     if rewards:
         panels.append((REWARD_PREFIX, "reward terms (weight · value · dt)"))
-    fig, axes = _panel_grid(len(panels))
+    fig, axes = panel_grid(len(panels))
     for ax, (tag, title) in zip(axes, panels, strict=True):
         if tag == REWARD_PREFIX:
             for name in rewards:
@@ -185,7 +185,7 @@ def plot_evaluation(results: dict, out_png: str | Path) -> Path:
     return save_figure(fig, out_png)
 
 
-def _panel_grid(n: int):
+def panel_grid(n: int):
     """A figure of ``n`` panels, three a row; (figure, the n axes in reading order)."""
     cols = min(3, n)
     rows = -(-n // cols)

@@ -125,6 +125,7 @@ report() {
   run=$(cat "$latest")
   "$py" -m agents.plots "$run" --png "$out/training_curves.png" --clips-png "$out/clip_curves.png" \
     --json "$out/training_summary.json"
+  "$py" -m agents.failure_bins "$run" --png "$out/failure_bins.png" --json "$out/failure_bins.json"
   "$py" -m otr_gym.cli evaluate "$run" --last --device "$device" --json "$out/eval.json"
   "$py" -m otr_gym.cli evaluate "$run" --last --randomize --device "$device" ${EVAL_ENVS:+--num-envs "$EVAL_ENVS"} \
     --json "$out/eval_randomized.json"

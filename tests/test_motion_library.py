@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from agents import runs
+from agents.failure_bins import clip_failures
 from agents.library import clip_labels, load_library
 from agents.metrics import ClipRolloutStats
 from agents.plots import plot_clip_curves, read_scalars
@@ -107,6 +108,48 @@ def test_evaluation_reports_every_clip_and_the_overall_figures(library_run, tmp_
 def test_per_clip_curves_are_drawn(library_run, tmp_path):
     png = plot_clip_curves(library_run, tmp_path / "clips.png")
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_clip_failure_bins_cover_each_clip_with_the_samplers_bins():
+    # 151 frames in 1 s bins: 4 bins of ⌊f·4/151⌋; 101 frames: 3 bins
+    rate = np.arange(7, dtype=float)
+    hover, stand = clip_failures(rate, [151, 101], ["hover", "stand"], fps=50.0, bin_duration_s=1.0)
+    assert hover.first_frame.tolist() == [0, 38, 76, 114] and hover.last_frame.tolist() == [37, 75, 113, 150]
+    assert stand.first_frame.tolist() == [0, 34, 68] and stand.last_frame.tolist() == [33, 67, 100]
+    assert hover.rate.tolist() == [0, 1, 2, 3] and stand.rate.tolist() == [4, 5, 6]
+    assert stand.worst(2) == [2, 1] and hover.worst(5) == [3, 2, 1]  # bins without failures are not listed
+    with pytest.raises(ValueError, match="not this run's library"):
+        clip_failures(rate, [151], ["hover"], fps=50.0, bin_duration_s=1.0)
+
+
+def test_a_runs_failure_map_names_the_clip_and_seconds_that_fail(library_run, library_dir, tmp_path, capsys):
+    from agents import failure_bins
+
+    ckpt, clips = failure_bins.load_clip_failures(library_run)
+    saved = torch.load(ckpt.path, map_location="cpu", weights_only=False)
+    rate = saved["infos"]["training_state"]["env"]["failure_rate"]
+    assert [c.clip for c in clips] == ["hover", "stand"]
+    assert [c.frames for c in clips] == [151, 101]
+    assert np.concatenate([c.rate for c in clips]).tolist() == pytest.approx(rate.tolist())
+    assert clips[0].total > clips[1].total  # the floating clip is where the robot falls
+    # a checkpoint whose failures all sit in the floating clip's third second
+    one_hot = torch.zeros_like(rate)
+    one_hot[2] = 0.5
+    saved["infos"]["training_state"]["env"]["failure_rate"] = one_hot
+    run = shutil.copytree(library_run, tmp_path / library_run.name)
+    torch.save(saved, run / ckpt.path.name)
+    png, out = tmp_path / "bins.png", tmp_path / "bins.json"
+    assert failure_bins.main([str(run / ckpt.path.name), "--png", str(png), "--json", str(out)]) == 0
+    table = capsys.readouterr().out
+    hover_line = next(line for line in table.splitlines() if line.startswith("hover"))
+    assert "100 %  1.5–2.3 s (frames 76–113) 100 %" in hover_line
+    assert next(line for line in table.splitlines() if line.startswith("stand")).endswith("–")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    bins = json.loads(out.read_text())["clips"][0]["bins"]
+    assert [b["failures_per_step"] for b in bins] == [0.0, 0.0, 0.5, 0.0]
+    # clips of another library do not fit the checkpoint's bins: refused, nothing written
+    assert failure_bins.main([str(run), "--reference", str(library_dir / "stand.npz")]) == 2
+    assert "not this run's library" in capsys.readouterr().err
 
 
 def test_clip_statistics_of_a_rollout_are_exact():

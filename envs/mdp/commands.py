@@ -41,6 +41,18 @@ START_MODES = ("adaptive", "uniform", "zero")
 FLOOR_MODES = ("absolute", "relative")
 
 
+def start_bin_counts(clip_length: torch.Tensor, frames_per_bin: float) -> torch.Tensor:
+    """(C,) long: each clip's n_c = ⌊T_c / frames_per_bin⌋ + 1 start bins (``clip_length`` (C,) frames)."""
+    return torch.div(clip_length, frames_per_bin, rounding_mode="floor").long() + 1
+
+
+def local_bins(frame: torch.Tensor, bin_count: torch.Tensor, clip_length: torch.Tensor) -> torch.Tensor:
+    """The bin of its clip (0 … n_c − 1) that each ``frame`` falls in: ⌊frame · n_c / T_c⌋,
+    the last frame held in the last bin. All arguments broadcast (long tensors)."""
+    local = torch.div(frame * bin_count, clip_length, rounding_mode="floor")
+    return torch.minimum(local, bin_count - 1)
+
+
 @dataclass(frozen=True)
 class RootNoise:
     """The reset noise of the robot root: the start pose is (turn·q, p + shift) about the
@@ -67,8 +79,7 @@ class MotionCommand:
             raise ValueError(f"command.library_clip_floor must lie in [0, 1], got {cfg.library_clip_floor}")
         self.motion, self.cfg, self.num_envs, self.gen = motion, cfg, num_envs, generator
         device = self.device = motion.device
-        frames_per_bin = cfg.fps * cfg.bin_duration_s
-        self.bin_count = torch.div(motion.clip_length, frames_per_bin, rounding_mode="floor").long() + 1  # (C,)
+        self.bin_count = start_bin_counts(motion.clip_length, cfg.fps * cfg.bin_duration_s)  # (C,)
         self.bin_offset = torch.cumsum(self.bin_count, 0) - self.bin_count  # (C,)
         self.bin_clip = torch.repeat_interleave(torch.arange(motion.num_clips, device=device), self.bin_count)
         num_bins = int(self.bin_clip.numel())
@@ -115,8 +126,7 @@ class MotionCommand:
 
     def record_failures(self, terminated: torch.Tensor) -> None:
         """Count the bins in which ``terminated`` (N,) envs failed (before they are reset)."""
-        local = torch.div(self.frame * self.bin_count[self.clip], self.clip_length, rounding_mode="floor")
-        bins = self.bin_offset[self.clip] + torch.minimum(local, self.bin_count[self.clip] - 1)
+        bins = self.bin_offset[self.clip] + local_bins(self.frame, self.bin_count[self.clip], self.clip_length)
         self._failures_now.index_add_(0, bins, terminated.float())
 
     def update_failure_rate(self) -> None:
