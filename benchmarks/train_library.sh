@@ -48,7 +48,8 @@
 #   SETS="$(cat benchmarks/state_estimation.sets)" NUM_ENVS=8192 MINUTES=5.5 benchmarks/train_library.sh train …
 #
 # OUT_DIR receives: train.log; from report: training_curves.png, clip_curves.png (success,
-# MPJPE, segment length, start probability per clip), training_summary.json, eval.json (frame 0,
+# MPJPE, segment length, start probability per clip), training_summary.json, failure_bins.png and
+# failure_bins.json (where in each clip the training episodes fail), eval.json (frame 0,
 # no randomisation, mean action; per clip and overall), eval_randomized.json, summary.md (both,
 # per clip), policy.onnx; from scaling: scaling.md and scaling.json.
 set -euo pipefail
