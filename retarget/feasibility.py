@@ -37,8 +37,9 @@ turns a retargeter's millimetre frame-to-frame jitter into accelerations of seve
 PD loop never follows (a 1 mm wobble at 50 fps is 0.5 g). Speeds, jumps (pelvis and limbs) and sliding use the raw
 motion. τ_rnea = RNEA(q, v, a) = M a + h includes the armature. The ground can only push: each sole
 point (the corners of the G1 foot capsules, ``otr_gym.robot_geometry``; for every other link the
-point of its collision capsules' end spheres nearest the ground) within ``contact_height_m`` of
-the ground carries a force in the linearised friction cone (4 edges,
+points of its geometry as the simulation collides it, ``collision_points``: the point of each
+capsule end sphere or sphere nearest the ground, each corner of the hands' boxes) within
+``contact_height_m`` of the ground carries a force in the linearised friction cone (4 edges,
 coefficient μ), f = E λ, λ ≥ 0. The contact forces are the non-negative least-squares fit of
 the base rows, min ‖W(τ_rnea[:6] − (Jᵀ E λ)[:6])‖² + ε‖λ‖² (W weighs moments by 1/L to make
 them forces), so they supply as much of the base wrench as physics allows and never pull.
@@ -305,7 +306,7 @@ class _Model:
     pin_model: object
     sole_frames: tuple[tuple[int, ...], tuple[int, ...]]  # pinocchio frame ids per foot
     sole_points_b: tuple[np.ndarray, np.ndarray]  # (P, 3) in the ankle_roll_link frame
-    link_frames: tuple[tuple[int, float], ...]  # other links: (frame at a capsule end centre, radius)
+    link_probes: tuple[int, ...]  # indices into probe_frames of the links other than the feet
     probe_frames: tuple[tuple[int, float, str], ...]  # collision_points: (frame, radius, body)
     mass_kg: float
 
@@ -313,9 +314,10 @@ class _Model:
 @lru_cache(maxsize=1)
 def _model() -> _Model:
     """The Pinocchio G1 with one operational frame per sole point (the corners, 2-D convex
-    hull, of each foot's collision capsules, on their underside), one per end-sphere centre
-    of every other collision capsule, and one per ``collision_points`` point (the probes of the
-    penetration measure)."""
+    hull, of each foot's collision capsules, on their underside) and one per ``collision_points``
+    point (the probes of the penetration measure). The probes of the links other than the feet
+    are also their support points: the geometry the simulation collides, the hands' boxes
+    rather than the retargeter's coarse hand capsules."""
     from scipy.spatial import ConvexHull
 
     model = robot.load_pinocchio_model()
@@ -327,13 +329,11 @@ def _model() -> _Model:
         corners = ends[ConvexHull(ends[:, :2]).vertices]
         frames.append(tuple(robot.add_point_frame(model, foot, p, f"{foot}_sole{k}") for k, p in enumerate(corners)))
         points.append(corners)
-    links = [(robot.add_point_frame(model, cap.body, p, f"{cap.name}_end{k}"), cap.radius)
-             for cap in collision_capsules() if cap.body not in robot.FEET
-             for k, p in enumerate({tuple(cap.p0), tuple(cap.p1)})]
     probes = [(robot.add_point_frame(model, point.body, point.point, f"{point.geom}_probe{k}"), point.radius, point.body)
               for k, point in enumerate(collision_points())]
+    links = tuple(i for i, (_, _, body) in enumerate(probes) if body not in robot.FEET)
     mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
-    return _Model(model, tuple(frames), tuple(points), tuple(links), tuple(probes), mass)
+    return _Model(model, tuple(frames), tuple(points), links, tuple(probes), mass)
 
 
 def _cone_edges(mu: float, normal: np.ndarray | None = None) -> np.ndarray:
@@ -427,10 +427,10 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     unsup_f = np.zeros(T)
     unsup_m = np.zeros(T)
     probe_radius = np.array([r for _, r, _ in mdl.probe_frames])
-    # one ground query per frame: the support points (soles, then capsule ends), then the probes
-    point_frames = ([fid for _, fid in sole_ids] + [fid for fid, _ in mdl.link_frames]
-                    + [fid for fid, _, _ in mdl.probe_frames])
-    n_support = len(sole_ids) + len(mdl.link_frames)
+    # one ground query per frame: the sole points, then the probes (those of the other links
+    # are their support points)
+    point_frames = [fid for _, fid in sole_ids] + [fid for fid, _, _ in mdl.probe_frames]
+    n_sole = len(sole_ids)
     depth = np.zeros(T)
     deepest: list[str] = [""] * T
     for t in range(T):
@@ -440,7 +440,7 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         pin.computeJointJacobians(m, data, q[t])
         pin.updateFramePlacements(m, data)
         height, normal = ground.under(np.array([data.oMf[fid].translation for fid in point_frames]))
-        height, probe_height = height[:n_support], height[n_support:]
+        probe_height, probe_normal = height[n_sole:], normal[n_sole:]
         below = probe_radius - probe_height  # how far each geom's lowest reach lies under the ground
         i = int(np.argmax(below))
         if below[i] > 0.0:
@@ -452,13 +452,14 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
                 point_edges.append(edges(normal[i]))
                 cols.append(jac.T @ point_edges[-1])  # (nv, 4): generalised force of each cone edge
                 owners.append(k)
-        for i, (fid, radius) in enumerate(mdl.link_frames, start=len(sole_ids)):
-            if height[i] - radius <= cfg.contact_height_m:
+        for i in mdl.link_probes:
+            fid, radius, _ = mdl.probe_frames[i]
+            if probe_height[i] - radius <= cfg.contact_height_m:
                 jac = pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)
-                # the sphere's point nearest the ground, r from the centre against the normal:
-                # v = v_c + ω × (−r n)
-                lowest = jac[:3] - skew(-radius * normal[i]) @ jac[3:]
-                point_edges.append(edges(normal[i]))
+                # the sphere's point nearest the ground, r from the centre against the normal
+                # (a box corner: r = 0): v = v_c + ω × (−r n)
+                lowest = jac[:3] - skew(-radius * probe_normal[i]) @ jac[3:]
+                point_edges.append(edges(probe_normal[i]))
                 cols.append(lowest.T @ point_edges[-1])
                 owners.append(2)
                 other_support[t] = True

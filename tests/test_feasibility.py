@@ -1,7 +1,7 @@
 """Dynamic feasibility of references (retarget.feasibility) on generated G1 motions whose
 answers are known: a standing robot, a hover, a ballistic flight, an elbow faster than its
-motor, a sliding stance, a teleport, a robot sunk into the floor, and torques checked against
-MuJoCo's inverse dynamics."""
+motor, a sliding stance, a teleport, a robot sunk into the floor, a hand on the floor, and
+torques checked against MuJoCo's inverse dynamics."""
 
 from __future__ import annotations
 
@@ -172,6 +172,40 @@ def test_a_robot_lying_face_down_in_the_floor_names_its_deepest_link():
     r = check_feasibility(_ref(np.tile(pose, (10, 1))))
     np.testing.assert_allclose(r.penetration_m, 0.04, atol=2e-3)
     assert set(r.penetration_link) == {body}
+
+
+def test_a_hand_carries_weight_on_its_boxes_not_on_the_retargeters_capsule():
+    """Pitched face down, the left arm reaching for the floor with the palm turned to it: the
+    hand's boxes (what the simulation collides) reach 1.9 cm lower than the retargeter's coarse
+    hand capsule (contype 0) and lower than every other link. With the boxes 1 cm above the floor
+    the hand is on the ground and pushes (the capsule is then 2.9 cm up, beyond the 2-cm contact
+    height: it alone would not count); raised to 2.5 cm, nothing touches."""
+    from otr_gym.robot_geometry import collision_capsules
+
+    pose = robot.default_qpos()
+    pose[3:7] = quat_from_euler_xyz(0.0, np.deg2rad(90.0), 0.0)
+    for joint, angle in (("left_shoulder_pitch", -1.2), ("left_elbow", 0.6), ("left_wrist_roll", 1.5),
+                         ("left_wrist_pitch", -1.0)):
+        pose[7 + robot.JOINT_NAMES.index(f"{joint}_joint")] = angle
+    lowest, body = lowest_collision_reach(pose)
+    assert body == "left_wrist_yaw_link"
+    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
+    data = mujoco.MjData(model)
+    (capsule,) = [c for c in collision_capsules() if c.name == "left_hand_collision"]
+    for height, on_ground in ((0.01, True), (0.025, False)):
+        qpos = pose.copy()
+        qpos[2] += height - lowest
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        b = model.body(capsule.body).id
+        capsule_low = min((data.xpos[b] + data.xmat[b].reshape(3, 3) @ p)[2] for p in (capsule.p0, capsule.p1))
+        assert capsule_low - capsule.radius > FeasibilityCfg().contact_height_m
+        r = check_feasibility(_ref(np.tile(qpos, (10, 1))))
+        if on_ground:
+            assert r.other_support.all()
+            assert (r.other_force_w[:, 2] > 0.05 * r.weight_n).all()
+        else:
+            assert not r.other_support.any() and not r.other_force_w.any()
 
 
 def test_torques_match_mujoco_inverse_dynamics_of_the_same_motion():
