@@ -413,10 +413,14 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     v_raw, _ = _velocity_acceleration(step, dt)
     v, a = _velocity_acceleration(_lowpass(step, cfg.lowpass_hz, cfg.fps), dt)
     weight = mdl.mass_kg * GRAVITY
-    floor_edges = _cone_edges(cfg.friction)
+    # one cone per ground normal: the floor's and each terrain face's (a handful), built once
+    cones: dict[tuple[float, ...], np.ndarray] = {(0.0, 0.0, 1.0): _cone_edges(cfg.friction)}
 
-    def edges(n: np.ndarray) -> np.ndarray:  # the floor's cone is built once; a terrain face's at its contact
-        return floor_edges if n[2] == 1.0 else _cone_edges(cfg.friction, n)
+    def edges(n: np.ndarray) -> np.ndarray:
+        key = tuple(n.tolist())
+        if key not in cones:
+            cones[key] = _cone_edges(cfg.friction, n)
+        return cones[key]
 
     sole_ids = [(k, fid) for k, ids in enumerate(mdl.sole_frames) for fid in ids]
     torque = np.zeros((T, robot.NUM_JOINTS))
