@@ -82,8 +82,7 @@ def load_clip_failures(run_or_checkpoint: str | Path, reference=None) -> tuple[r
     """The failure map of a checkpoint (a run folder: its latest), over the clips of
     ``reference`` (default: the run's own library, loaded as training loaded it)."""
     ckpt = runs.resolve_checkpoint(run_or_checkpoint)
-    saved = torch.load(ckpt.path, map_location="cpu", weights_only=False)
-    state = (saved.get("infos") or {}).get("training_state", {}).get("env", {})
+    state = (runs.load_checkpoint(ckpt).get("infos") or {}).get("training_state", {}).get("env", {})
     if "failure_rate" not in state:
         raise runs.RunError(f"{ckpt.path}: the checkpoint holds no sampler statistics (training_state.env.failure_rate)")
     config = runs.run_config(ckpt.run_dir)

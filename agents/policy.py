@@ -7,7 +7,6 @@ loaded on any device; evaluation, export and play all start here.
 
 from __future__ import annotations
 
-import pickle
 from dataclasses import dataclass
 
 import torch
@@ -61,10 +60,10 @@ def load_policy(run_or_checkpoint, device: str | torch.device = "cpu") -> Traine
         raise runs.RunError(f"{ckpt.run_dir / runs.CONFIG_FILE}: no 'train' section")
     train_cfg = train_config_from_dict(run_config["train"])
     actor = build_actor(train_cfg, env_spec["observation_dims"], env_spec["num_actions"])
+    state = runs.load_checkpoint(ckpt)
     try:
-        state = torch.load(ckpt.path, map_location="cpu", weights_only=False)
         actor.load_state_dict(state["actor_state_dict"])
-    except (RuntimeError, KeyError, TypeError, EOFError, OSError, pickle.UnpicklingError) as exc:
+    except (RuntimeError, KeyError, TypeError) as exc:
         raise runs.RunError(f"{ckpt.path}: not a readable checkpoint of this run ({exc})") from exc
     actor.to(device).eval()
     return TrainedPolicy(actor, train_cfg, env_spec, run_config, ckpt)

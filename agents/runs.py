@@ -111,6 +111,22 @@ def resolve_checkpoint(run_or_checkpoint: str | Path) -> Checkpoint:
     return Checkpoint(path, int(m.group(1)))
 
 
+def load_checkpoint(ckpt: Checkpoint) -> dict:
+    """The saved mapping of a checkpoint (on the CPU); a truncated or foreign file raises
+    RunError naming it."""
+    import pickle
+
+    import torch
+
+    try:
+        saved = torch.load(ckpt.path, map_location="cpu", weights_only=False)
+    except (RuntimeError, EOFError, OSError, pickle.UnpicklingError) as exc:
+        raise RunError(f"{ckpt.path}: not a readable checkpoint ({exc})") from exc
+    if not isinstance(saved, dict):
+        raise RunError(f"{ckpt.path}: not a checkpoint of this package (a {type(saved).__name__}, not a mapping)")
+    return saved
+
+
 def run_config(run_dir: str | Path) -> dict:
     """The ``config.yaml`` of a run: {"train": …, "reference": …, "device": …, …}."""
     return read_yaml(Path(run_dir) / CONFIG_FILE)

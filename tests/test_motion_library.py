@@ -150,6 +150,11 @@ def test_a_runs_failure_map_names_the_clip_and_seconds_that_fail(library_run, li
     # clips of another library do not fit the checkpoint's bins: refused, nothing written
     assert failure_bins.main([str(run), "--reference", str(library_dir / "stand.npz")]) == 2
     assert "not this run's library" in capsys.readouterr().err
+    # a truncated checkpoint is named, not a traceback
+    broken = run / "model_9.pt"
+    broken.write_bytes((run / ckpt.path.name).read_bytes()[:100])
+    assert failure_bins.main([str(broken)]) == 2
+    assert f"{broken}: not a readable checkpoint" in capsys.readouterr().err
 
 
 def test_clip_statistics_of_a_rollout_are_exact():
