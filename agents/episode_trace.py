@@ -46,6 +46,7 @@ from envs.mdp.metrics import (
     anchor_horizontal_error_m,
     anchor_offset_heading_m,
     body_position_error_root_relative,
+    end_effector_height_offset_m,
     object_offset_heading_m,
     object_orientation_error_rad,
     object_position_error_m,
@@ -239,7 +240,7 @@ def trace_episode(run_or_checkpoint: str | Path, reference: str | Path | None = 
             cols["bodies"].append(bodies_mm.tolist())
             cols["lag"].append(100.0 * float(anchor_horizontal_error_m(s)[0]))
             cols["offset"].append((100.0 * anchor_offset_heading_m(s)[0]).tolist())
-            cols["ee"].append((100.0 * (s.body_pos_w[0, ee, 2] - s.ref_body_pos_aligned_w[0, ee, 2])).tolist())
+            cols["ee"].append((100.0 * end_effector_height_offset_m(s)[0]).tolist())
             cols["joint"].append((s.joint_pos[0] - s.ref_joint_pos[0]).tolist())
             cols["effort"].append((vec.task.backend.joint_torque_nm[0].abs() / effort).tolist())
             if has_objects:

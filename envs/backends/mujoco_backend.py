@@ -83,7 +83,9 @@ class MuJoCoBackend(PhysicsBackend):
 
     @property
     def _qfrc_actuator(self) -> torch.Tensor:
-        return self._qfrc_actuator_t
+        # read on demand (diagnostics only): nothing touches qfrc_actuator between mj_step and
+        # here, so this is the last substep's, without a per-step copy of every world's
+        return torch.from_numpy(np.stack([d.qfrc_actuator for d in self._datas])).float()
 
     @property
     def unstable(self) -> torch.Tensor:
@@ -158,4 +160,3 @@ class MuJoCoBackend(PhysicsBackend):
         self._qpos, self._qvel = stack("qpos"), stack("qvel")
         self._xpos, self._xquat = stack("xpos"), stack("xquat")
         self._cvel_t, self._subtree_com_t = stack("cvel"), stack("subtree_com")
-        self._qfrc_actuator_t = stack("qfrc_actuator")

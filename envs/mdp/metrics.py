@@ -40,6 +40,13 @@ def anchor_horizontal_error_m(s: TrackingState) -> torch.Tensor:
     return torch.linalg.norm(s.ref_anchor_pos_w[:, :2] - s.anchor_pos_w[:, :2], dim=-1)
 
 
+def end_effector_height_offset_m(s: TrackingState) -> torch.Tensor:
+    """(N, E) height (m) of each end effector (``s.end_effectors``: ankle rolls, wrist yaws) above
+    its aligned reference (negative: below), the quantity of the ``ee_height`` termination."""
+    ee = s.end_effectors
+    return s.body_pos_w[:, ee, 2] - s.ref_body_pos_aligned_w[:, ee, 2]
+
+
 def horizontal_offset_in_heading(offset_w: torch.Tensor, heading_quat_w: torch.Tensor) -> torch.Tensor:
     """(..., 2) the horizontal part of world offsets (..., 3) in the frame of a heading (the yaw of
     unit quaternions (..., 4), wxyz): x forward, y to the left. A turn about z keeps the height

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import torch
 
-from envs.mdp.metrics import anchor_horizontal_error_m, object_orientation_error_rad
+from envs.mdp.metrics import anchor_horizontal_error_m, end_effector_height_offset_m, object_orientation_error_rad
 from envs.mdp.state import TrackingState
 from otr_gym.rotations import projected_gravity
 
@@ -31,9 +31,7 @@ def anchor_gravity_error(s: TrackingState, threshold: float) -> torch.Tensor:
 
 def end_effector_height_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
     """Any end-effector (ankle_roll, wrist_yaw) height off its aligned target by > threshold (m)."""
-    ee = s.end_effectors
-    err = torch.abs(s.ref_body_pos_aligned_w[:, ee, 2] - s.body_pos_w[:, ee, 2])
-    return torch.any(err > threshold_m, dim=-1)
+    return torch.any(torch.abs(end_effector_height_offset_m(s)) > threshold_m, dim=-1)
 
 
 def object_position_error(s: TrackingState, threshold_m: float) -> torch.Tensor:
