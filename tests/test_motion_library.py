@@ -20,7 +20,7 @@ from agents.library import clip_labels, load_library
 from agents.metrics import ClipRolloutStats
 from agents.plots import plot_clip_curves, read_scalars
 from agents.procedural import WalkSpec, standing_reference, walking_reference
-from envs.config import CommandCfg
+from envs.config import CommandCfg, load_env_config
 from envs.mdp.commands import MotionCommand
 from envs.mdp.motion import MotionLibrary
 from otr_gym import cli, robot
@@ -113,19 +113,45 @@ def test_per_clip_curves_are_drawn(library_run, tmp_path):
 def test_clip_failure_bins_cover_each_clip_with_the_samplers_bins():
     # 151 frames in 1 s bins: 4 bins of ⌊f·4/151⌋; 101 frames: 3 bins
     rate = np.arange(7, dtype=float)
-    hover, stand = clip_failures(rate, [151, 101], ["hover", "stand"], fps=50.0, bin_duration_s=1.0)
+    cfg = CommandCfg(fps=50.0, bin_duration_s=1.0, adaptive_floor="relative", adaptive_uniform_ratio=0.5,
+                     adaptive_kernel_size=1, library_clip_floor=0.5)
+    hover, stand = clip_failures(rate, [151, 101], ["hover", "stand"], cfg)
     assert hover.first_frame.tolist() == [0, 38, 76, 114] and hover.last_frame.tolist() == [37, 75, 113, 150]
     assert stand.first_frame.tolist() == [0, 34, 68] and stand.last_frame.tolist() == [33, 67, 100]
     assert hover.rate.tolist() == [0, 1, 2, 3] and stand.rate.tolist() == [4, 5, 6]
     assert stand.worst(2) == [2, 1] and hover.worst(5) == [3, 2, 1]  # bins without failures are not listed
+    # the starts, written out: relative floor r/n_c·F_c per bin (hover F 6, stand F 15), clip
+    # mass (1 + r)·F_c, clip share β/2 + (1 − β)·m_c/Σm, split over the bins by weight
+    hover_w = np.array([0, 1, 2, 3]) + 0.5 / 4 * 6
+    stand_w = np.array([4, 5, 6]) + 0.5 / 3 * 15
+    share = 0.25 + 0.5 * np.array([hover_w.sum(), stand_w.sum()]) / (hover_w.sum() + stand_w.sum())
+    np.testing.assert_allclose(hover.start, hover_w / hover_w.sum() * share[0], rtol=1e-12)
+    np.testing.assert_allclose(stand.start, stand_w / stand_w.sum() * share[1], rtol=1e-12)
+    assert hover.start_share + stand.start_share == pytest.approx(1.0)
+    assert hover.describe_bin(3).endswith(f"50 %, {100 * hover.start[3]:.1f} % of starts")
     with pytest.raises(ValueError, match="not this run's library"):
-        clip_failures(rate, [151], ["hover"], fps=50.0, bin_duration_s=1.0)
+        clip_failures(rate, [151], ["hover"], cfg)
+
+
+def test_the_failure_maps_starts_are_the_samplers():
+    """The starts that agents.failure_bins shows are the distribution MotionCommand draws from,
+    for the same failure rates, under either floor rule and a start kernel."""
+    refs = [standing_reference(duration_s=99 / 50), standing_reference(duration_s=249 / 50)]
+    motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
+    rate = torch.tensor([0.0, 2.0, 0.3, 0.0, 0.0, 0.1, 0.0, 4.0, 0.5])
+    for cfg in (CommandCfg(), CommandCfg(adaptive_floor="absolute", adaptive_kernel_size=3, library_clip_floor=0.2)):
+        cmd = MotionCommand(motion, 8, cfg, torch.Generator().manual_seed(0))
+        cmd.failure_rate.copy_(rate)
+        clips = clip_failures(rate.numpy(), [100, 250], ["short", "long"], cfg)
+        np.testing.assert_allclose(np.concatenate([c.start for c in clips]), cmd.sampling_probabilities().numpy(),
+                                   rtol=1e-6)
+        np.testing.assert_allclose([c.start_share for c in clips], cmd.clip_probabilities().numpy(), rtol=1e-6)
 
 
 def test_a_runs_failure_map_names_the_clip_and_seconds_that_fail(library_run, library_dir, tmp_path, capsys):
     from agents import failure_bins
 
-    ckpt, clips = failure_bins.load_clip_failures(library_run)
+    ckpt, clips, _ = failure_bins.load_clip_failures(library_run)
     saved = torch.load(ckpt.path, map_location="cpu", weights_only=False)
     rate = saved["infos"]["training_state"]["env"]["failure_rate"]
     assert [c.clip for c in clips] == ["hover", "stand"]
@@ -142,11 +168,30 @@ def test_a_runs_failure_map_names_the_clip_and_seconds_that_fail(library_run, li
     assert failure_bins.main([str(run / ckpt.path.name), "--png", str(png), "--json", str(out)]) == 0
     table = capsys.readouterr().out
     hover_line = next(line for line in table.splitlines() if line.startswith("hover"))
-    assert "100 %  1.5–2.3 s (frames 76–113) 100 %" in hover_line
+    # starts under the run's rule (relative floor r, clip floor β): hover's failure mass is
+    # under 1, so each clip's floor is r/n_c per bin; hover weighs r + 0.5, stand r
+    cfg = load_env_config(TRACK).command
+    r, beta = cfg.adaptive_uniform_ratio, cfg.library_clip_floor
+    assert cfg.adaptive_floor == "relative" and cfg.adaptive_kernel_size == 1
+    hover_share = beta / 2 + (1 - beta) * (r + 0.5) / (2 * r + 0.5)
+    third_bin = (r / 4 + 0.5) / (r + 0.5) * hover_share
+    assert f"100 %  {100 * hover_share:5.1f} %  1.5–2.3 s (frames 76–113) 100 %, {100 * third_bin:.1f} % of starts" \
+        in hover_line
     assert next(line for line in table.splitlines() if line.startswith("stand")).endswith("–")
+    assert "starts under library_clip_floor 0.5" in table
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    bins = json.loads(out.read_text())["clips"][0]["bins"]
+    saved_map = json.loads(out.read_text())
+    bins = saved_map["clips"][0]["bins"]
     assert [b["failures_per_step"] for b in bins] == [0.0, 0.0, 0.5, 0.0]
+    assert bins[2]["start_share"] == pytest.approx(third_bin) and saved_map["library_clip_floor"] == beta
+    # another floor, the same failures: with β = 0 the clips share by their mass alone
+    assert failure_bins.main([str(run), "--clip-floor", "0", "--json", str(out)]) == 0
+    assert "starts under library_clip_floor 0 (--clip-floor)" in capsys.readouterr().out
+    what_if = json.loads(out.read_text())["clips"]
+    assert what_if[0]["start_share"] == pytest.approx((r + 0.5) / (2 * r + 0.5))
+    assert what_if[0]["bins"][2]["failures_per_step"] == 0.5  # the failures are the run's
+    assert failure_bins.main([str(run), "--clip-floor", "1.5"]) == 2
+    assert "--clip-floor must lie in [0, 1], got 1.5" in capsys.readouterr().err
     # clips of another library do not fit the checkpoint's bins: refused, nothing written
     assert failure_bins.main([str(run), "--reference", str(library_dir / "stand.npz")]) == 2
     assert "not this run's library" in capsys.readouterr().err

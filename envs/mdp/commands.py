@@ -53,6 +53,36 @@ def local_bins(frame: torch.Tensor, bin_count: torch.Tensor, clip_length: torch.
     return torch.minimum(local, bin_count - 1)
 
 
+def bin_clips(bin_count: torch.Tensor) -> torch.Tensor:
+    """(B,) long: the clip of each bin of a library whose clips have ``bin_count`` (C,) bins."""
+    return torch.repeat_interleave(torch.arange(bin_count.numel(), device=bin_count.device), bin_count)
+
+
+def start_probabilities(failure_rate: torch.Tensor, bin_count: torch.Tensor, bin_clip: torch.Tensor,
+                        cfg: CommandCfg) -> torch.Tensor:
+    """(B,) probability that a start falls in each bin (summing to 1) under ``cfg``'s rule (module
+    docstring): ``failure_rate`` (B,) failures per step of every clip's bins in library order,
+    ``bin_count`` (C,) long the bins of each clip (``start_bin_counts``), ``bin_clip`` (B,) their
+    clips (``bin_clips``; passed in, as building it needs a host sync). The sampler draws from
+    this; ``agents.failure_bins`` shows it beside the failures, also under another clip floor."""
+    clips = bin_count.numel()
+    floor = cfg.adaptive_uniform_ratio / bin_count[bin_clip].to(failure_rate.dtype)
+    failures = failure_rate if cfg.start == "adaptive" else torch.zeros_like(floor)
+    if cfg.adaptive_floor == "relative":
+        clip_failures = torch.zeros(clips, dtype=failure_rate.dtype, device=failure_rate.device)
+        floor = floor * clip_failures.index_add_(0, bin_clip, failures).clamp_min(1.0)[bin_clip]
+    weight = floor + failures
+    last_bin = (torch.cumsum(bin_count, 0) - 1)[bin_clip]
+    index = torch.arange(weight.numel(), device=weight.device)
+    p = torch.zeros_like(weight)
+    for k in range(cfg.adaptive_kernel_size):
+        p += cfg.adaptive_lambda**k * weight[torch.minimum(index + k, last_bin)]
+    mass = torch.zeros(clips, dtype=p.dtype, device=p.device).index_add_(0, bin_clip, p)  # m_c
+    beta = cfg.library_clip_floor
+    share = beta / clips + (1.0 - beta) * mass / mass.sum()  # p(c)
+    return p / mass[bin_clip] * share[bin_clip]
+
+
 @dataclass(frozen=True)
 class RootNoise:
     """The reset noise of the robot root: the start pose is (turn·q, p + shift) about the
@@ -81,7 +111,7 @@ class MotionCommand:
         device = self.device = motion.device
         self.bin_count = start_bin_counts(motion.clip_length, cfg.fps * cfg.bin_duration_s)  # (C,)
         self.bin_offset = torch.cumsum(self.bin_count, 0) - self.bin_count  # (C,)
-        self.bin_clip = torch.repeat_interleave(torch.arange(motion.num_clips, device=device), self.bin_count)
+        self.bin_clip = bin_clips(self.bin_count)
         num_bins = int(self.bin_clip.numel())
         self.failure_rate = torch.zeros(num_bins, device=device)  # EMA of failures per bin
         self._failures_now = torch.zeros(num_bins, device=device)
@@ -137,22 +167,7 @@ class MotionCommand:
 
     def sampling_probabilities(self) -> torch.Tensor:
         """(num_bins,) start-bin distribution (see module docstring)."""
-        floor = self.cfg.adaptive_uniform_ratio / self.bin_count[self.bin_clip].float()
-        failures = self.failure_rate if self.cfg.start == "adaptive" else torch.zeros_like(floor)
-        if self.cfg.adaptive_floor == "relative":
-            clip_failures = torch.zeros(self.motion.num_clips, device=self.device).index_add_(0, self.bin_clip, failures)
-            floor = floor * clip_failures.clamp_min(1.0)[self.bin_clip]
-        weight = floor + failures
-        last_bin = (self.bin_offset + self.bin_count - 1)[self.bin_clip]
-        index = torch.arange(weight.numel(), device=self.device)
-        p = torch.zeros_like(weight)
-        for k in range(self.cfg.adaptive_kernel_size):
-            p += self.cfg.adaptive_lambda**k * weight[torch.minimum(index + k, last_bin)]
-        clips = self.motion.num_clips
-        mass = torch.zeros(clips, device=self.device).index_add_(0, self.bin_clip, p)  # m_c
-        floor = self.cfg.library_clip_floor
-        share = floor / clips + (1.0 - floor) * mass / mass.sum()  # p(c)
-        return p / mass[self.bin_clip] * share[self.bin_clip]
+        return start_probabilities(self.failure_rate, self.bin_count, self.bin_clip, self.cfg)
 
     def clip_probabilities(self) -> torch.Tensor:
         """(C,) total start probability of each clip's bins."""
