@@ -106,7 +106,8 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0, action_noise: float 
         acc.end_step(terminated, truncated, info["terminations"])
         if acc.all_finished:
             break
-    return summarize(acc.per_env(), clip_ids, clip_labels(list(vec.motion.names)), objects)
+    return summarize(acc.per_env(), clip_ids, clip_labels(list(vec.motion.names)), objects,
+                     vec.motion.clip_length.tolist())
 
 
 def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None, num_envs: int | None = None,

@@ -84,8 +84,10 @@ class EpisodeAccumulator:
 
 
 def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: list[str],
-              objects: ObjectEpisodeMetrics | None = None) -> dict:
-    """Aggregate per-env results per clip and overall (with ``objects``, their metrics too).
+              objects: ObjectEpisodeMetrics | None = None, clip_frames: list[int] | None = None) -> dict:
+    """Aggregate per-env results per clip and overall (with ``objects``, their metrics too;
+    with ``clip_frames``, each clip's length in frames as ``clip_frames``: an episode that
+    tracks the whole clip lives ``clip_frames`` − 1 frames, its first target being frame 1).
 
     Overall MPJPE is frame-weighted (every evaluated frame counts once), so a policy that falls
     early is not rewarded with a small average over a few frames *and* it shows in success.
@@ -115,6 +117,7 @@ def summarize(per_env: dict[str, np.ndarray], clip_ids: np.ndarray, clip_names: 
             "frames": int(frames.sum()),
             **ended_by(sel),
             **(objects.summary(sel) if objects is not None else {}),
+            **({"clip_frames": int(clip_frames[c])} if clip_frames is not None else {}),
         })
     frames = per_env["frames"]
     return {

@@ -167,20 +167,58 @@ def plot_clip_curves(run_dir: str | Path, out_png: str | Path, smooth: int = 10)
     return save_figure(fig, out_png)
 
 
+def tracked_share(clip: dict) -> float:
+    """Share of a clip its evaluation episodes tracked (``evaluate`` per-clip result with
+    ``clip_frames``): 1 when every episode reached the last frame."""
+    return min(1.0, clip["frames"] / (clip["envs"] * max(clip["clip_frames"] - 1, 1)))
+
+
+def checkpoint_minutes(results: dict) -> list[float] | None:
+    """Learning minutes at each evaluated checkpoint (``learning_minutes`` of the run's event
+    files), or None when the run folder has no such curves (a checkpoint carried alone)."""
+    run_dir = Path(results["checkpoints"][-1]["checkpoint"]).parent
+    try:
+        its, minutes = learning_minutes(read_scalars(run_dir))
+    except (runs.RunError, OSError):
+        return None
+    at = dict(zip(its, minutes, strict=True))
+    found = [at.get(e["iteration"]) for e in results["checkpoints"]]
+    return None if None in found else found
+
+
 def plot_evaluation(results: dict, out_png: str | Path) -> Path:
-    """MPJPE and success rate against the checkpoint iteration (``evaluate`` results)."""
+    """MPJPE and success rate against the checkpoint's learning minutes (the iteration when the
+    run's event files are not there); for a library, beside it, the share of each clip its
+    episodes tracked, so that the checkpoint from which every clip passes can be read off."""
     evals = results["checkpoints"]
-    its = [e["iteration"] for e in evals]
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.plot(its, [e["mpjpe_mm"] for e in evals], "o-", color="tab:blue", label="MPJPE (mm)")
-    ax.set_xlabel("checkpoint iteration")
+    minutes = checkpoint_minutes(results)
+    x = minutes or [e["iteration"] for e in evals]
+    xlabel = "learning minutes at the checkpoint" if minutes else "checkpoint iteration"
+    clips = [c["clip"] for c in evals[-1]["clips"]]
+    library = len(clips) > 1 and all("clip_frames" in c for e in evals for c in e["clips"])
+    fig, axes = plt.subplots(1, 2 if library else 1, figsize=(12 if library else 6, 3.6), squeeze=False)
+    ax = axes[0][0]
+    ax.plot(x, [e["mpjpe_mm"] for e in evals], "o-", color="tab:blue", label="MPJPE (mm)")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("MPJPE, root-relative (mm)", color="tab:blue")
     ax.grid(alpha=0.3)
     twin = ax.twinx()
-    twin.plot(its, [100 * e["success_rate"] for e in evals], "s--", color="tab:green", label="success (%)")
+    twin.plot(x, [100 * e["success_rate"] for e in evals], "s--", color="tab:green", label="success (%)")
     twin.set_ylabel("success (%)", color="tab:green")
     twin.set_ylim(-5, 105)
     ax.set_title(f"{results['run']} on {results['reference']['name']}", fontsize=9)
+    if library:
+        ax = axes[0][1]
+        for name in clips:
+            share = [next((100 * tracked_share(c) for c in e["clips"] if c["clip"] == name), float("nan"))
+                     for e in evals]
+            ax.plot(x, share, "o-", ms=3, label=name)
+        ax.set_ylim(-5, 105)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("share of the clip tracked (%)")
+        ax.set_title("per clip: 100 % = every episode reached the clip's end", fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     return save_figure(fig, out_png)
 

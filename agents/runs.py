@@ -127,6 +127,35 @@ def load_checkpoint(ckpt: Checkpoint) -> dict:
     return saved
 
 
+#: What a policy-only checkpoint keeps: the actor (evaluate, play, export, episode_trace), the
+#: iteration and the training state the failure map reads; not the critic or the optimizer.
+POLICY_ONLY_KEYS = ("actor_state_dict", "iter", "infos")
+
+
+def write_policy_only(ckpt: Checkpoint, out: str | Path) -> Path:
+    """Write ``ckpt`` without its critic and optimizer state to ``out`` (atomically; about a
+    sixth of the size, so that a run's intermediate checkpoints can travel back from a GPU
+    machine and be evaluated). It is marked ``policy_only``: training cannot resume from it."""
+    import torch
+
+    saved = load_checkpoint(ckpt)
+    if "actor_state_dict" not in saved:
+        raise RunError(f"{ckpt.path}: holds no actor_state_dict")
+    slim = {key: saved[key] for key in POLICY_ONLY_KEYS if key in saved}
+    slim["policy_only"] = True
+    return atomic_write(out, lambda f: torch.save(slim, f))
+
+
+def policy_only_copies(run_dir: str | Path, every: int, out_dir: str | Path) -> list[Path]:
+    """Policy-only copies (``write_policy_only``) in ``out_dir`` of the run's checkpoints at
+    multiples of ``every`` iterations, all but the latest (which travels whole), same names."""
+    if every < 1:
+        raise ValueError(f"--every must be >= 1, got {every}")
+    found = checkpoints(run_dir)
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    return [write_policy_only(c, Path(out_dir) / c.path.name) for c in found[:-1] if c.iteration % every == 0]
+
+
 def run_config(run_dir: str | Path) -> dict:
     """The ``config.yaml`` of a run: {"train": …, "reference": …, "device": …, …}."""
     return read_yaml(Path(run_dir) / CONFIG_FILE)
@@ -137,10 +166,19 @@ def main(argv: list[str] | None = None) -> int:
     sub = parser.add_subparsers(dest="command", required=True)
     latest = sub.add_parser("latest", help="print the latest checkpoint of a run folder")
     latest.add_argument("run", help="run folder")
+    slim = sub.add_parser("policy-only", help="policy-only copies of a run's checkpoints every N iterations "
+                          "(all but the latest), to evaluate elsewhere")
+    slim.add_argument("run", help="run folder")
+    slim.add_argument("--every", type=int, required=True, help="iterations between the copies")
+    slim.add_argument("--out", required=True, help="folder to write them to (same file names)")
     args = parser.parse_args(argv)
     try:
-        print(resolve_checkpoint(args.run).path)
-    except RunError as exc:
+        if args.command == "latest":
+            print(resolve_checkpoint(args.run).path)
+        else:
+            for path in policy_only_copies(args.run, args.every, args.out):
+                print(path)
+    except (RunError, ValueError) as exc:
         print(exc, file=sys.stderr)
         return 1
     return 0

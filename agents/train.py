@@ -110,6 +110,9 @@ def _setup(args: argparse.Namespace) -> tuple[TrainCfg, ClipLibrary, Path | None
         raise ValueError(f"--iterations must be >= 1, got {args.iterations}")
     if args.resume:
         ckpt = runs.resolve_checkpoint(args.resume)
+        if runs.load_checkpoint(ckpt).get("policy_only"):
+            raise ValueError(f"{ckpt.path}: a policy-only checkpoint (no critic or optimizer state, carried for "
+                             "evaluation) cannot resume training; resume from the run's full checkpoint")
         record = runs.run_config(ckpt.run_dir)
         cfg = train_config_from_dict(merge(record["train"], _overrides(args)))
         reference = args.reference or record["reference"]

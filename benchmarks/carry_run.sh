@@ -13,6 +13,11 @@
 # that folder holds a checkpoint, LATEST_RUN is written to name it (the train stage would resume
 # it) and packed.
 #
+# With EVERY=N, a second archive, OUT_policies.tar.gz (OUT.tar.gz's name), holds policy-only
+# copies of the run's checkpoints at multiples of N iterations (`python -m agents.runs
+# policy-only`: the actor without critic or optimizer, ~1 MB each), under the same paths: extract
+# it beside the run and `otr evaluate RUN --plot P` measures every one, how the policy got there.
+#
 #   benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON [TRAIN_LOG]]
 set -euo pipefail
 usage="usage: benchmarks/carry_run.sh LATEST_RUN_FILE OUT.tar.gz [PYTHON [TRAIN_LOG]]"
@@ -33,6 +38,20 @@ mkdir -p "$(dirname "$tar_out")"
 # a file list, not --exclude: tar's exclusions would drop the checkpoint named on the command line too
 { echo "$latest"; find "$run" -type f ! -name '*.pt' ! -name '*.onnx'; echo "$last"; } |
   tar czf "$tar_out" --verbatim-files-from -T -
+if [ "${EVERY:-0}" -gt 0 ]; then
+  slim=$(mktemp -d)
+  "$py" -m agents.runs policy-only "$run" --every "$EVERY" --out "$slim" > /dev/null
+  names=$(cd "$slim" && ls)
+  policies="${tar_out%.tar.gz}_policies.tar.gz"
+  if [ -n "$names" ]; then
+    # shellcheck disable=SC2086  # file names of the form model_<it>.pt
+    tar czf "$policies" -C "$slim" --transform "s,^,${run%/}/," $names
+    echo "$policies: $(echo $names | wc -w) policy-only checkpoints every $EVERY iterations, $(du -h "$policies" | cut -f1)"
+  else
+    echo "EVERY=$EVERY: no checkpoint but the latest at a multiple of $EVERY iterations; no $policies" >&2
+  fi
+  rm -rf "$slim"
+fi
 where="in the repository root"
 case "$run" in /*) where="with tar xf $(basename "$tar_out") -C /" ;; esac
 echo "$tar_out: $run, checkpoint $(basename "$last"), $(du -h "$tar_out" | cut -f1); extract $where, then train resumes"

@@ -42,7 +42,9 @@
 # e.g. "env.terminations.anchor_height.params.threshold_m=0.5"), EVAL_ENVS (randomised
 # evaluation envs in all, spread evenly over the clips; default 256 per clip), ITERS (scaling: iterations per GPU count, 150),
 # SCALING_MINUTES (scaling: also train this long on each GPU count and evaluate both; 0 = skip),
-# DATA (../shared/data, or shared/data in the checkout), RUNS_DIR (OUT_DIR/runs), PYTHON (python3).
+# DATA (../shared/data, or shared/data in the checkout), RUNS_DIR (OUT_DIR/runs), PYTHON (python3),
+# EVERY (carry: also OUT_DIR/run_policies.tar.gz, policy-only copies of every EVERY-th checkpoint, ~1 MB
+# each; extract both and `otr evaluate RUN --plot P` shows when each clip was learned; 0 = off).
 # BeyondMimic's default actor (with state estimation: + reference-anchor position and pelvis
 # linear velocity, 160 dims; not deployable by agents.deploy, which has no state estimator):
 #   SETS="$(cat benchmarks/state_estimation.sets)" NUM_ENVS=8192 MINUTES=5.5 benchmarks/train_library.sh train …

@@ -143,6 +143,41 @@ def test_carry_packs_the_latest_run_with_only_its_latest_checkpoint(tmp_path, sc
     assert result.returncode == 1 and "holds no checkpoint" in result.stderr and run.name in result.stderr
 
 
+def test_carry_with_every_packs_policy_only_checkpoints_beside_the_run(tmp_path):
+    """EVERY=N: a second archive holds policy-only copies of the checkpoints at multiples of N
+    (not the latest, which run.tar.gz holds whole) under the run's own paths."""
+    import torch
+
+    carry = Path(__file__).resolve().parents[1] / "benchmarks" / "train_library.sh"
+    run = tmp_path / "runs" / "x" / "OTR-G1-Track-v0_librefs_20261129-102510"
+    run.mkdir(parents=True)
+    for it in (250, 499, 500, 750):
+        torch.save({"actor_state_dict": {"w": torch.full((3,), float(it))}, "critic_state_dict": {"w": torch.ones(50)},
+                    "optimizer_state_dict": {"m": torch.ones(100)}, "iter": it, "infos": {}}, run / f"model_{it}.pt")
+    (run / "config.yaml").write_text("train: {}\n")
+    (run.parent / "LATEST_RUN").write_text(f"runs/x/{run.name}\n")
+
+    def carry_every(every: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["bash", str(carry), "carry", "out"], cwd=tmp_path, capture_output=True, text=True,
+                              env={**os.environ, "RUNS_DIR": "runs/x", "EVERY": every}, timeout=60)
+
+    result = carry_every("250")
+    assert result.returncode == 0, result.stderr
+    assert "2 policy-only checkpoints every 250 iterations" in result.stdout
+    with tarfile.open(tmp_path / "out" / "run_policies.tar.gz") as tar:
+        assert sorted(tar.getnames()) == [f"runs/x/{run.name}/model_250.pt", f"runs/x/{run.name}/model_500.pt"]
+        tar.extractall(tmp_path / "back")
+    slim = torch.load(tmp_path / "back" / "runs" / "x" / run.name / "model_500.pt", weights_only=False)
+    assert slim["policy_only"] and slim["iter"] == 500 and "critic_state_dict" not in slim
+    assert slim["actor_state_dict"]["w"].tolist() == [500.0] * 3
+    with tarfile.open(tmp_path / "out" / "run.tar.gz") as tar:
+        assert [n for n in tar.getnames() if n.endswith(".pt")] == [f"runs/x/{run.name}/model_750.pt"]
+    (tmp_path / "out" / "run_policies.tar.gz").unlink()
+    result = carry_every("1000")  # nothing but the latest at a multiple: said, no archive
+    assert result.returncode == 0 and "no checkpoint but the latest" in result.stderr
+    assert not (tmp_path / "out" / "run_policies.tar.gz").exists()
+
+
 @pytest.mark.parametrize("script, args", [("train_box.sh", ["out", "ref.npz"]), ("train_library.sh", ["out"])])
 def test_carry_packs_a_run_that_is_still_training(tmp_path, script, args):
     """While the train stage's process runs there is no LATEST_RUN yet (it is written when the

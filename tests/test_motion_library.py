@@ -364,6 +364,54 @@ def test_a_library_run_resumes_with_its_clips_and_sampler(library_run, tmp_path)
     assert torch.all(after >= (1 - 0.001) ** 24 * rate - 1e-7)
 
 
+def test_evaluating_a_library_runs_checkpoints_draws_each_clips_progress(library_run, tmp_path):
+    """``otr evaluate RUN --plot`` over every checkpoint: each clip's length is reported, the
+    share of it the episodes tracked follows from the frames they lived, and the x axis is the
+    run's learning minutes at each checkpoint."""
+    from agents.plots import checkpoint_minutes, learning_minutes, tracked_share
+
+    out, png = tmp_path / "eval.json", tmp_path / "eval.png"
+    assert cli.main(["evaluate", str(library_run), "--device", "cpu", "--json", str(out), "--plot", str(png)]) == 0
+    results = json.loads(out.read_text())
+    assert [e["iteration"] for e in results["checkpoints"]] == [c.iteration for c in runs.checkpoints(library_run)]
+    final = {c["clip"]: c for c in results["final"]["clips"]}
+    assert final["hover"]["clip_frames"] == 151 and final["stand"]["clip_frames"] == 101
+    hover = final["hover"]  # the floating clip: the robot falls within ~0.25 s
+    assert tracked_share(hover) == pytest.approx(hover["frames"] / (hover["envs"] * 150)) and tracked_share(hover) < 0.15
+    its, minutes = learning_minutes(read_scalars(library_run))
+    assert checkpoint_minutes(results) == [minutes[its.index(e["iteration"])] for e in results["checkpoints"]]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_policy_only_checkpoints_evaluate_like_the_full_ones_and_refuse_to_resume(library_run, tmp_path, capsys):
+    """A run's intermediate checkpoints travel back from a GPU machine without critic and
+    optimizer (``carry`` with EVERY): the copy keeps the actor, the iteration and the sampler
+    statistics, evaluates to exactly the full checkpoint's figures, and cannot resume training."""
+    run = shutil.copytree(library_run, tmp_path / library_run.name)
+    full = run / "model_1.pt"
+    shutil.copy(full, run / "model_4.pt")  # the latest, which carry packs whole
+    copies = runs.policy_only_copies(run, 1, tmp_path / "slim")
+    assert [p.name for p in copies] == [c.path.name for c in runs.checkpoints(run)[:-1]]  # not model_4
+    slim_path = tmp_path / "slim" / "model_1.pt"
+    slim = torch.load(slim_path, map_location="cpu", weights_only=False)
+    saved = torch.load(full, map_location="cpu", weights_only=False)
+    assert slim["policy_only"] is True and set(slim) == {"actor_state_dict", "iter", "infos", "policy_only"}
+    assert all(torch.equal(slim["actor_state_dict"][k], v) for k, v in saved["actor_state_dict"].items())
+    assert slim["infos"]["training_state"]["env"]["failure_rate"].tolist() == \
+        saved["infos"]["training_state"]["env"]["failure_rate"].tolist()
+    assert slim_path.stat().st_size < full.stat().st_size / 2
+    shutil.copy(slim_path, full)
+    out_full, out_slim = tmp_path / "full.json", tmp_path / "slim.json"
+    assert cli.main(["evaluate", str(run / "model_4.pt"), "--device", "cpu", "--json", str(out_full)]) == 0
+    assert cli.main(["evaluate", str(full), "--device", "cpu", "--json", str(out_slim)]) == 0
+    a, b = (json.loads(p.read_text())["final"] for p in (out_full, out_slim))
+    assert (a["success_rate"], a["mpjpe_mm"], a["frames"]) == (b["success_rate"], b["mpjpe_mm"], b["frames"])
+    capsys.readouterr()
+    assert cli.main(["train", "--resume", str(full), "--iterations", "1", "--device", "cpu"]) == 2
+    assert f"{full}: a policy-only checkpoint" in capsys.readouterr().err
+    assert runs.main(["policy-only", str(run), "--every", "0", "--out", str(tmp_path / "x")]) == 1
+
+
 def test_play_records_the_chosen_clip_of_a_library(library_run, tmp_path):
     from agents.play import play
 
