@@ -112,13 +112,18 @@ def run_episodes(vec, policy: TrainedPolicy, seed: int = 0, action_noise: float 
 
 def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None, num_envs: int | None = None,
              device: str | None = None, randomize: bool = False, seed: int = 0, last_only: bool = False,
-             action_noise: float = 0.0) -> dict:
+             action_noise: float = 0.0, every: int | None = None) -> dict:
     """Results of one checkpoint, or of every checkpoint of a run folder (oldest first; only
-    the latest with ``last_only``); ``action_noise``: see ``run_episodes``."""
+    the latest with ``last_only``; with ``every``, those at multiples of it and the latest);
+    ``action_noise``: see ``run_episodes``."""
     if not 0.0 <= action_noise < float("inf"):  # NaN fails too
         raise ValueError(f"--action-noise must be a finite std >= 0, got {action_noise}")
+    if every is not None and every < 1:
+        raise ValueError(f"--every must be >= 1, got {every}")
     target = Path(run_or_checkpoint)
     ckpts = runs.checkpoints(target) if target.is_dir() and not last_only else [runs.resolve_checkpoint(target)]
+    if every is not None:
+        ckpts = [c for c in ckpts[:-1] if c.iteration % every == 0] + ckpts[-1:]
     torch_device = resolve_device(device)
     first = load_policy(ckpts[-1], torch_device)
     library, overrides = evaluation_library(first, reference, randomize)
@@ -193,6 +198,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--randomize", action="store_true", help="keep domain randomisation and observation "
                         "noise (pushes off) to measure robustness")
     parser.add_argument("--last", action="store_true", help="of a run folder, only the latest checkpoint")
+    parser.add_argument("--every", type=int, metavar="N", help="of a run folder, only the checkpoints at multiples "
+                        "of N iterations and the latest")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--action-noise", type=float, default=0.0, metavar="STD",
                         help="add zero-mean Gaussian noise of this std to every action (action units, e.g. the "
@@ -204,7 +211,7 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     try:
         results = evaluate(args.run, args.reference, args.num_envs, args.device, args.randomize, args.seed,
-                           args.last, args.action_noise)
+                           args.last, args.action_noise, args.every)
     except (runs.RunError, InvalidReferenceError, ValueError, gymnasium.error.Error) as exc:
         print(f"otr evaluate: {exc}", file=sys.stderr)
         return 2

@@ -381,6 +381,14 @@ def test_evaluating_a_library_runs_checkpoints_draws_each_clips_progress(library
     its, minutes = learning_minutes(read_scalars(library_run))
     assert checkpoint_minutes(results) == [minutes[its.index(e["iteration"])] for e in results["checkpoints"]]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # --every N: the checkpoints at multiples of N, and the latest whatever its number
+    shutil.copy(runs.checkpoints(library_run)[-1].path, tmp_path / "model_7.pt")
+    run = shutil.copytree(library_run, tmp_path / "every")
+    shutil.copy(tmp_path / "model_7.pt", run / "model_7.pt")
+    assert cli.main(["evaluate", str(run), "--every", "2", "--device", "cpu", "--json", str(out)]) == 0
+    expected = [c.iteration for c in runs.checkpoints(run)[:-1] if c.iteration % 2 == 0] + [7]
+    assert [e["iteration"] for e in json.loads(out.read_text())["checkpoints"]] == expected
+    assert cli.main(["evaluate", str(run), "--every", "0", "--device", "cpu"]) == 2
 
 
 def test_policy_only_checkpoints_evaluate_like_the_full_ones_and_refuse_to_resume(library_run, tmp_path, capsys):
