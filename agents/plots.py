@@ -218,7 +218,7 @@ def plot_evaluation(results: dict, out_png: str | Path) -> Path:
         ax.set_ylabel("share of the clip tracked (%)")
         ax.set_title("per clip: 100 % = every episode reached the clip's end", fontsize=9)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))  # clear of the lines at 100 %
     fig.tight_layout()
     return save_figure(fig, out_png)
 
