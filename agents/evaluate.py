@@ -118,12 +118,10 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
     ``action_noise``: see ``run_episodes``."""
     if not 0.0 <= action_noise < float("inf"):  # NaN fails too
         raise ValueError(f"--action-noise must be a finite std >= 0, got {action_noise}")
-    if every is not None and every < 1:
-        raise ValueError(f"--every must be >= 1, got {every}")
     target = Path(run_or_checkpoint)
     ckpts = runs.checkpoints(target) if target.is_dir() and not last_only else [runs.resolve_checkpoint(target)]
     if every is not None:
-        ckpts = [c for c in ckpts[:-1] if c.iteration % every == 0] + ckpts[-1:]
+        ckpts = runs.every_nth(ckpts, every) + ckpts[-1:]
     torch_device = resolve_device(device)
     first = load_policy(ckpts[-1], torch_device)
     library, overrides = evaluation_library(first, reference, randomize)

@@ -146,14 +146,20 @@ def write_policy_only(ckpt: Checkpoint, out: str | Path) -> Path:
     return atomic_write(out, lambda f: torch.save(slim, f))
 
 
+def every_nth(found: list[Checkpoint], every: int) -> list[Checkpoint]:
+    """Of ``found`` (oldest first), those at multiples of ``every`` iterations, the latest left
+    out (the caller adds or packs it whole)."""
+    if every < 1:
+        raise ValueError(f"--every must be >= 1, got {every}")
+    return [c for c in found[:-1] if c.iteration % every == 0]
+
+
 def policy_only_copies(run_dir: str | Path, every: int, out_dir: str | Path) -> list[Path]:
     """Policy-only copies (``write_policy_only``) in ``out_dir`` of the run's checkpoints at
     multiples of ``every`` iterations, all but the latest (which travels whole), same names."""
-    if every < 1:
-        raise ValueError(f"--every must be >= 1, got {every}")
-    found = checkpoints(run_dir)
+    chosen = every_nth(checkpoints(run_dir), every)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    return [write_policy_only(c, Path(out_dir) / c.path.name) for c in found[:-1] if c.iteration % every == 0]
+    return [write_policy_only(c, Path(out_dir) / c.path.name) for c in chosen]
 
 
 def run_config(run_dir: str | Path) -> dict:

@@ -45,7 +45,7 @@
 # DATA (../shared/data, or shared/data in the checkout), RUNS_DIR (OUT_DIR/runs), PYTHON (python3),
 # EVERY (carry: also OUT_DIR/run_policies.tar.gz, policy-only copies of every EVERY-th checkpoint, ~1 MB
 # each; extract both and `otr evaluate RUN --plot P` shows when each clip was learned; 0 = off; report:
-# with EVERY, also progress.json / progress.png, those checkpoints and the latest evaluated from frame 0).
+# with EVERY, eval.json holds those checkpoints and the latest, from frame 0, drawn in progress.png).
 # BeyondMimic's default actor (with state estimation: + reference-anchor position and pelvis
 # linear velocity, 160 dims; not deployable by agents.deploy, which has no state estimator):
 #   SETS="$(cat benchmarks/state_estimation.sets)" NUM_ENVS=8192 MINUTES=5.5 benchmarks/train_library.sh train …
@@ -130,14 +130,15 @@ report() {
   "$py" -m agents.plots "$run" --png "$out/training_curves.png" --clips-png "$out/clip_curves.png" \
     --json "$out/training_summary.json"
   "$py" -m agents.failure_bins "$run" --png "$out/failure_bins.png" --json "$out/failure_bins.json"
-  "$py" -m otr_gym.cli evaluate "$run" --last --device "$device" --json "$out/eval.json"
+  if [ "${EVERY:-0}" -gt 0 ]; then  # how the policy got there: every EVERY-th checkpoint and the latest, from frame 0
+    "$py" -m otr_gym.cli evaluate "$run" --every "$EVERY" --device "$device" --json "$out/eval.json" \
+      --plot "$out/progress.png"
+  else
+    "$py" -m otr_gym.cli evaluate "$run" --last --device "$device" --json "$out/eval.json"
+  fi
   "$py" -m otr_gym.cli evaluate "$run" --last --randomize --device "$device" ${EVAL_ENVS:+--num-envs "$EVAL_ENVS"} \
     --json "$out/eval_randomized.json"
   "$py" -m otr_gym.cli export "$run" --onnx "$out/policy.onnx"
-  if [ "${EVERY:-0}" -gt 0 ]; then  # how the policy got there: the checkpoints every EVERY iterations, from frame 0
-    "$py" -m otr_gym.cli evaluate "$run" --every "$EVERY" --device "$device" --json "$out/progress.json" \
-      --plot "$out/progress.png"
-  fi
   "$py" - "$out" <<'EOF'
 import json, sys
 from pathlib import Path
