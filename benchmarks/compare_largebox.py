@@ -35,8 +35,8 @@ from otr_gym.rotations import (
     quat_from_yaw,
     quat_to_matrix,
 )
-from retarget.demonstration import Demonstration
-from retarget.demos import load_demonstration
+from retarget.inputs.demonstration import Demonstration
+from retarget.inputs.readers import load_demonstration
 from retarget.evaluation.alignment import demo_at_times
 from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
 from retarget.evaluation.report import format_scale_notes, format_table

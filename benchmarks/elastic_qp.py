@@ -4,7 +4,7 @@
 
 Retargets the test suite's too-big substitute (the synthetic box carry's frames 166–172, its box
 ``--scale`` times as wide, a 2 cm grid, as ``otr variants`` does), records every QP that ProxQP
-failed and the elastic re-solve took (``retarget.qp_workspace``), then solves each again with a
+failed and the elastic re-solve took (``retarget.solver.qp_workspace``), then solves each again with a
 slack on every row (the re-solve before the working set, n + m variables; skipped above
 ``--max-full-rows`` rows) and prints one row per QP: rows, working-set time, QPs solved and the
 largest set, all-rows time, and the largest difference between the two steps.
@@ -27,13 +27,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-full-rows", type=int, default=2000, help="skip the all-rows solve above this many rows")
     args = ap.parse_args(argv)
 
-    from retarget.geometry import GeometryConfig
-    from retarget.pipeline import RetargetConfig
-    from retarget.qp_workspace import QPWorkspace
-    from retarget.shapes import ShapeSpec
-    from retarget.substitute import SubstitutionConfig
-    from retarget.synthetic import generate
-    from retarget.variants import VariantJob, run_variant
+    from retarget.geometry.channels import GeometryConfig
+    from retarget.config import RetargetConfig
+    from retarget.solver.qp_workspace import QPWorkspace
+    from retarget.inputs.shapes import ShapeSpec
+    from retarget.solver.substitute import SubstitutionConfig
+    from retarget.inputs.synthetic import generate
+    from retarget.cli.variants import VariantJob, run_variant
 
     recorded: list[tuple[list[np.ndarray], np.ndarray, float, list[int], float]] = []
     elastic, with_slacks = QPWorkspace._solve_elastic, QPWorkspace._solve_with_slacks

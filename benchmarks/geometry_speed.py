@@ -1,4 +1,4 @@
-"""Speed of the proximity geometry and OT correspondences (retarget.geometry / retarget.transport).
+"""Speed of the proximity geometry and OT correspondences (retarget.geometry.channels / retarget.solver.transport).
 
 Prints a table: grid build and cache load per mesh, query and geodesic time per 1 000 probes,
 OT time for the largest human-part/G1-link pair. Run on one core for comparable numbers:
@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from retarget.geometry import SDFChannel
-from retarget.meshes import as_trimesh, load_mesh
+from retarget.geometry.channels import SDFChannel
+from retarget.inputs.meshes import as_trimesh, load_mesh
 
 DEFAULT_LARGEBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "objects" / "largebox.obj"
 
@@ -62,9 +62,9 @@ def ot_rows(cache: Path) -> list[tuple[str, str]]:
     from otr_gym import robot
     from otr_gym.robot_geometry import visual_meshes
     from otr_gym.rotations import quat_to_matrix
-    from retarget.geometry import sample_surface
-    from retarget.human import G1_LINK_PARTS, PART_NAMES, HumanModel, g1_tpose_body_poses, human_tpose
-    from retarget.transport import ot_assignment
+    from retarget.geometry.channels import sample_surface
+    from retarget.inputs.human import G1_LINK_PARTS, PART_NAMES, HumanModel, g1_tpose_body_poses, human_tpose
+    from retarget.solver.transport import ot_assignment
 
     human = HumanModel()
     pos, quat = human_tpose(human)

@@ -3,7 +3,7 @@ and 2 workers, on the same clips; and whether the four give the same references.
 
     python benchmarks/ray_throughput.py [--clips 20] [--seconds 1.0] [--out /tmp/otr_ray_bench]
 
-The corpus is short slices of the procedural walk (``retarget.synthetic``, seed 0, 30 fps),
+The corpus is short slices of the procedural walk (``retarget.inputs.synthetic``, seed 0, 30 fps),
 retargeted at native scale. Each configuration is one ``python -m otr_gym.cli retarget`` run
 into its own folder; wall time includes process start, imports and, for Ray, starting the
 local cluster. References are compared with the serial run's: identical bytes, else the
@@ -31,7 +31,7 @@ CONFIGS = (("serial", []), ("--workers 2", ["--workers", "2"]), ("Ray, 1 worker"
 def make_corpus(folder: Path, clips: int, seconds: float) -> None:
     from dataclasses import replace
 
-    from retarget.synthetic import generate
+    from retarget.inputs.synthetic import generate
 
     demo = generate("walk", seed=0, fps=30.0)
     length = int(round(seconds * demo.fps))

@@ -54,8 +54,8 @@ def _pin() -> None:
 
 
 def _clips():
-    from retarget import synthetic
-    from retarget.demos import load_demonstration
+    from retarget.inputs import synthetic
+    from retarget.inputs.readers import load_demonstration
 
     amass = SHARED / "amass" / "smplh_walk_jog_turn.npz"
     omomo = SHARED / "omomo" / "sub3_largebox_003.pt"
@@ -70,9 +70,11 @@ def _clips():
 def run_clip(label: str, load, frames: int | None) -> dict:
     import numpy as np
 
-    from retarget.pipeline import RetargetConfig, problem_from_config
-    from retarget.problem import resample_demonstration
-    from retarget.solver import solve_sequence
+    from retarget.clip import problem_from_config
+
+    from retarget.config import RetargetConfig
+    from retarget.solver.problem import resample_demonstration
+    from retarget.solver.sqp import solve_sequence
 
     cfg = RetargetConfig()
     demo = resample_demonstration(load(), cfg.fps)

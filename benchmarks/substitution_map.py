@@ -1,4 +1,4 @@
-"""Accuracy and cost of the object↔object witness map (retarget.substitute.SurfaceMap).
+"""Accuracy and cost of the object↔object witness map (retarget.solver.substitute.SurfaceMap).
 
 Where the right answer is known: an identical substitute (every point must map onto itself)
 and the captured object resized ×s about its centre (a point must map to s times its offset
@@ -7,7 +7,7 @@ p95, max, mm) and the time to build the two maps (four Sinkhorn plans, no cache)
 
     python benchmarks/substitution_map.py [--mesh ../shared/data/objects/largebox.obj]
 
-Without the mesh file the synthetic box of ``retarget.synthetic`` (0.35 × 0.40 × 0.30 m) is used.
+Without the mesh file the synthetic box of ``retarget.inputs.synthetic`` (0.35 × 0.40 × 0.30 m) is used.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from retarget.geometry import sample_surface
-from retarget.meshes import as_trimesh, load_mesh
-from retarget.substitute import SubstitutionConfig, surface_maps
+from retarget.geometry.channels import sample_surface
+from retarget.inputs.meshes import as_trimesh, load_mesh
+from retarget.solver.substitute import SubstitutionConfig, surface_maps
 
 DEFAULT_MESH = Path(__file__).resolve().parents[2] / "shared" / "data" / "objects" / "largebox.obj"
 

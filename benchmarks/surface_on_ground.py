@@ -4,7 +4,7 @@ demonstration to score against (Holosoma's, or ``otr clear-ground``'s output).
     python benchmarks/surface_on_ground.py REF [REF ...] [--terrain MESH] [--true-surface] [--json F]
 
 Per reference, over every frame: how deep the G1's visual meshes go below the ground (the floor
-z = 0 and, with ``--terrain``, the clip's terrain along its faces' normals, ``retarget.ground``),
+z = 0 and, with ``--terrain``, the clip's terrain along its faces' normals, ``retarget.checks.ground``),
 the deepest link and the frames deeper than 1 mm and 1 cm; the same for the hands alone (the
 wrist yaw links, which carry the rubber hands); and self-penetration (``retarget.evaluation
 .self_collision``: p95 over frames, the paper's *self*, and the worst frame). Without
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
     from otr_gym import robot
     from otr_gym.io import write_json
     from otr_gym.robot_geometry import surface_margin_m
-    from retarget.ground import Ground
+    from retarget.checks.ground import Ground
 
     try:
         ground = Ground.from_mesh(args.terrain) if args.terrain else Ground.floor()

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from retarget.viewer import CHROMIUM_ARGS, open_viewer
+from retarget.cli.viewer import CHROMIUM_ARGS, open_viewer
 
 
 def walk_reference(frames: int):

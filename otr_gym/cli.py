@@ -14,16 +14,16 @@ import sys
 
 #: command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("otr_gym.demo", "run the whole pipeline on the embedded default (synthetic box carry)"),
-    "inspect": ("otr_gym.summary", "summarise a demonstration or reference file"),
-    "retarget": ("retarget.pipeline", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
-    "eval": ("retarget.metrics", "score references against their demonstration (paper's protocol)"),
-    "verify": ("retarget.verify", "check a reference: penetration, limits and holds against its demonstration; "
+    "demo": ("retarget.cli.demo", "run the whole pipeline on the embedded default (synthetic box carry)"),
+    "inspect": ("agents.inspect", "summarise a demonstration or reference file"),
+    "retarget": ("retarget.cli.retarget", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
+    "eval": ("retarget.cli.score", "score references against their demonstration (paper's protocol)"),
+    "verify": ("retarget.checks.verify", "check a reference: penetration, limits and holds against its demonstration; "
                                   "dynamic feasibility (on its terrain too)"),
-    "clear-ground": ("retarget.ground_clearance", "lift a reference's arms out of the ground or its terrain "
+    "clear-ground": ("retarget.checks.ground_clearance", "lift a reference's arms out of the ground or its terrain "
                                                   "(hands a reference put inside it)"),
-    "variants": ("retarget.variants", "one demonstration, many references: substitute shapes and sizes (Table IV)"),
-    "view": ("retarget.viewer", "web viewer (viser): references, objects, the person, contacts, metrics"),
+    "variants": ("retarget.cli.variants", "one demonstration, many references: substitute shapes and sizes (Table IV)"),
+    "view": ("retarget.cli.viewer", "web viewer (viser): references, objects, the person, contacts, metrics"),
     "train": ("agents.train", "train a tracking policy with rsl-rl PPO"),
     "evaluate": ("agents.evaluate", "success rate and MPJPE of a trained policy"),
     "export": ("agents.export", "export a policy to ONNX with metadata"),

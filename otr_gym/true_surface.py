@@ -15,7 +15,7 @@ The error measure of one link (all distances in mm, mesh files in their own fram
   the shipped mesh — what a contact with the outside of the robot sees;
 * ``surface_error_mm``: the largest distance from any original vertex, area sample or outer
   sample to the shipped mesh (interior included), the margin used by the solver and
-  ``retarget.verify``;
+  ``retarget.checks.verify``;
 * ``hull_volume_change_pct``: convex-hull volume of the shipped mesh relative to the original;
 * ``components``: pieces of at least 1 cm² in (original, shipped), vertices closer than 10 µm
   merged; a piece that falls apart raises the shipped count (twin walls a few µm apart that

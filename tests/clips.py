@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import replace
 from functools import lru_cache
 
-from retarget.demonstration import Demonstration
-from retarget.synthetic import generate
+from retarget.inputs.demonstration import Demonstration
+from retarget.inputs.synthetic import generate
 
 
 @lru_cache(maxsize=4)

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 SHARED_DATA = Path(os.environ.get("OTR_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+REPO_ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = REPO_ROOT / "benchmarks"
 
 # Headless rendering in tests: EGL unless the caller chose a GL backend (must precede `import mujoco`).
 if sys.platform.startswith("linux"):
@@ -68,8 +69,9 @@ def shared_data() -> Path:
 def largebox_reference(shared_data, tmp_path_factory) -> Path:
     """Our reference of OMOMO sub3_largebox_003 (native scale, box free), retargeted once per
     session (~30 s on one core) by this commit's code."""
-    from retarget.demos import load_demonstration
-    from retarget.pipeline import RetargetConfig, retarget_demonstration
+    from retarget.inputs.readers import load_demonstration
+    from retarget.clip import retarget_demonstration
+    from retarget.config import RetargetConfig
 
     demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
     return retarget_demonstration(demo, RetargetConfig()).save(tmp_path_factory.mktemp("refs") / "sub3_largebox_003.npz")

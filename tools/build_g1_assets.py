@@ -12,7 +12,7 @@ both ways) stays within ``--tolerance-mm``. Then add what the RL spec needs: pos
 actuators (kp, kd, effort from ``otr_gym.robot``), joint armature, the 200 Hz physics options
 and the "knees_bent" keyframe. Prints the per-link error table (``otr_gym.true_surface``:
 outer-surface p99/max, surface error, hull volume change, pieces) and writes it to
-``mesh_error.json``, whose surface error is the margin the solver and ``retarget.verify`` add
+``mesh_error.json``, whose surface error is the margin the solver and ``retarget.checks.verify`` add
 to keep their checks conservative. The model stays under Unitree's BSD-3-Clause licence
 (``otr_gym/assets/g1/LICENSE``).
 """

@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 
 from otr_gym.rotations import quat_slerp
-from retarget.demonstration import Demonstration
+from retarget.inputs.demonstration import Demonstration
 
 
 class AlignmentError(ValueError):

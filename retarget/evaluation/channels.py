@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from otr_gym.reference import InvalidReferenceError, Reference
-from retarget.demonstration import Demonstration
-from retarget.meshes import TriMesh, object_mesh
+from retarget.inputs.demonstration import Demonstration
+from retarget.inputs.meshes import TriMesh, object_mesh
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,7 @@
 """Style error *rot* (paper Sec. IV-A): link orientations against the style targets.
 
 The target of link ℓ is R̂_ℓ = R_h(ℓ) O_ℓ: the world orientation of its human part times the
-fixed alignment offset O_ℓ from the T-poses (``retarget.human.alignment_offsets``), the same
+fixed alignment offset O_ℓ from the T-poses (``retarget.inputs.human.alignment_offsets``), the same
 offsets for every method. The error is the angle of R_ℓ R̂_ℓᵀ.
 """
 

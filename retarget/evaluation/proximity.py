@@ -5,7 +5,7 @@ distance to a channel at frame t is the signed distance of its closest vertex (n
 penetration), and its witness is that vertex's closest point on the channel surface, in the
 **channel frame** (world for the ground, object frame for objects).
 
-Mesh distances are exact (``retarget.meshes.signed_distance``: AABB point–triangle queries,
+Mesh distances are exact (``retarget.inputs.meshes.signed_distance``: AABB point–triangle queries,
 winding-number sign robust to holes). Querying every vertex of every frame would cost
 ~10 µs × 30k vertices × T, so vertices that provably cannot be the closest one are skipped,
 without approximation. The signed distance to the mesh's oriented bounding box is a lower
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from retarget.evaluation.units import PosedUnit
-from retarget.meshes import TriMesh, signed_distance
+from retarget.inputs.meshes import TriMesh, signed_distance
 
 
 def ground_proximity(unit: PosedUnit) -> tuple[np.ndarray, np.ndarray]:

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from otr_gym import robot
-from retarget.demonstration import Demonstration, scaled_object_positions
+from retarget.inputs.demonstration import Demonstration, scaled_object_positions
 
 
 @dataclass(frozen=True)

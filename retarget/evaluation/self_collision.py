@@ -9,7 +9,7 @@ that per-frame depth, so a single glancing frame does not dominate but a sustain
 does.
 
 The G1 visual meshes are not watertight, so "inside" is the fast winding number of
-``retarget.meshes.signed_distance``. Pairs are pruned exactly: link bounding spheres that do
+``retarget.inputs.meshes.signed_distance``. Pairs are pruned exactly: link bounding spheres that do
 not overlap cannot penetrate, and a vertex outside b's bounding box cannot be inside b.
 
 Neighbours are excluded because their meshes overlap at the joints by design (the shells
@@ -27,8 +27,8 @@ from functools import lru_cache
 import numpy as np
 
 from otr_gym.rotations import quat_to_matrix
-from retarget.kinematics import link_pairs_beyond
-from retarget.meshes import TriMesh, as_trimesh, signed_distance
+from retarget.geometry.kinematics import link_pairs_beyond
+from retarget.inputs.meshes import TriMesh, as_trimesh, signed_distance
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ from otr_gym import robot
 from otr_gym.flags import true_intervals
 from otr_gym.reference import Reference
 from otr_gym.robot_geometry import visual_meshes
-from retarget.demonstration import Demonstration
+from retarget.inputs.demonstration import Demonstration
 from retarget.evaluation.alignment import check_durations, demo_at_times
 from retarget.evaluation.channels import object_channels, reference_tracks
 from retarget.evaluation.config import EvalConfig
@@ -128,7 +128,7 @@ def evaluate_sequence(ref: Reference, demo: Demonstration, cfg: EvalConfig | Non
     ``demo_source`` names the demonstration in messages and records (default: the path its
     reader recorded, else its name).
     """
-    from retarget.human import STYLE_LINKS, alignment_offsets
+    from retarget.inputs.human import STYLE_LINKS, alignment_offsets
 
     cfg = EvalConfig() if cfg is None else cfg
     demo_name = demo_source or str(demo.source.get("path", demo.name))

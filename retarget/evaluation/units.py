@@ -1,6 +1,6 @@
 """Body units: what a sample (t, u, c) pairs with a channel, on the human and on the robot.
 
-Units come from the one human-part <-> G1-link table ``retarget.human.G1_LINK_PARTS``: a unit
+Units come from the one human-part <-> G1-link table ``retarget.inputs.human.G1_LINK_PARTS``: a unit
 is a connected group of that table, i.e. a set of G1 links (with visual meshes) and the set
 of human parts they map to, closed under sharing — links that share a human part are one
 unit, and so are parts that share a link. The robot unit is the union of its links' visual
@@ -64,7 +64,7 @@ def group_units(link_parts: dict[str, tuple[str, ...]]) -> tuple[BodyUnit, ...]:
 def default_units() -> tuple[BodyUnit, ...]:
     """Units of ``G1_LINK_PARTS`` restricted to the G1 links that have a visual mesh."""
     from otr_gym.robot_geometry import visual_meshes
-    from retarget.human import G1_LINK_PARTS
+    from retarget.inputs.human import G1_LINK_PARTS
 
     meshes = visual_meshes()
     return group_units({link: tuple(parts) for link, parts in G1_LINK_PARTS.items() if link in meshes})

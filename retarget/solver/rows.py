@@ -1,0 +1,1122 @@
+"""Residual and constraint rows of the QP at one iterate (the linearisation, eq. m-qp).
+
+Every row is a pair of 6-vectors φ on the two bodies it involves (``retarget.solver.residuals.Rows``).
+Cost rows: interaction residuals of robot probes and object probes against every channel
+(eq. m-energy) and the style rows (eq. m-esty-o). Constraint rows: non-penetration of probes,
+hull and vertex guards against every channel, object guard points (hull, edges, and the deepest
+surface point per cluster) against the links' own distance grids, and capsule self-collision
+(eq. m-qp-col).
+
+Hot-path economy: links are culled per channel by bounding spheres before any probe is posed,
+probes are posed with one matrix product per link, and the constraint rows that seed a QP are
+the extreme points of the rows closer than a margin (``initial_constraints``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numba
+import numpy as np
+
+from otr_gym import robot
+from retarget.geometry.centre_of_mass import com_residual
+from retarget.geometry.channels import (
+    PREFETCH_AHEAD,
+    ProximityQuery,
+    SDFChannel,
+    _cell_inside,
+    _cell_of,
+    _prefetch_phi_cell,
+    _trilinear_phi,
+)
+from retarget.solver.iterate import SectionTimer, SolverState, channel_pose, frames_at
+from retarget.geometry.jit import helper, inlined, kernel_pose
+from retarget.geometry.kinematics import NUM_LINKS, LinkFrames
+from retarget.solver.probes import ProbeSet, _in_frame, _pose_in_frame, _posed_point
+from retarget.solver.problem import ChannelTrack, Problem
+from retarget.solver.residuals import (
+    FIXED,
+    PairSet,
+    Rows,
+    Triples,
+    _to_channel_point,
+    _to_world_direction,
+    _twist_row,
+    far_field,
+    interaction_rows,
+    signed_distance_rows,
+    to_channel_frame,
+    twist_factors,
+)
+from retarget.solver.stance import stance_rows
+from retarget.solver.style import pose_rows
+from retarget.solver.targets import FrameTargets, near_channel
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    cost: Rows
+    constraints: Rows  # every surface pair in the band, then the close capsule pairs
+    surface_channel: np.ndarray  # (S,) channel code of the surface rows (``initial_constraints``)
+    margin: float  # m: surface rows closer than this may seed the first QP
+    frames: LinkFrames
+    active_pairs: int
+    min_distance: float
+    min_self_distance: float
+    counts: np.ndarray  # (L + O,) active probes per link and object at this iterate (N_ℓ)
+    contact: ContactSelection  # the contact-state rows in use
+    #: com(q) − c*_t (3,) m and its Jacobian (3, nv) when the frame has a COM target
+    #: (``retarget.solver.flight``), else None
+    com: tuple[np.ndarray, np.ndarray] | None = None
+
+    @cached_property
+    def initial(self) -> np.ndarray:
+        """Indices of ``constraints`` put in the first QP: the surface rows chosen by
+        :func:`initial_constraints`, then every capsule row. Computed on first use: a trial
+        iterate that the trust-region test rejects never needs it."""
+        k = len(self.surface_channel)
+        c = self.constraints
+        surface = Rows(c.value[:k], c.weight[:k], c.phi[:k], c.body_a[:k], c.body_b[:k])
+        return np.concatenate([initial_constraints(surface, self.surface_channel, self.margin),
+                               np.arange(k, len(c))])
+
+
+def candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray, rot_c: np.ndarray,
+                     pos_c: np.ndarray) -> np.ndarray:
+    """(L,) links whose bounding sphere comes within the band of the channel's bounds."""
+    if track.is_ground:
+        gap = centre_w[:, 2]
+    else:
+        c = to_channel_frame(centre_w, rot_c, pos_c)
+        gap = np.linalg.norm(np.maximum(0.0, np.maximum(track.lower - c, c - track.upper)), axis=1)
+    return gap - problem.link_radius < problem.band_m
+
+
+def rows_take(rows: Rows, index: np.ndarray) -> Rows:
+    return Rows(np.take(rows.value, index), np.take(rows.weight, index), np.take(rows.phi, index, axis=0),
+                np.take(rows.body_a, index), np.take(rows.body_b, index))
+
+
+#: Rows are grouped by the nearest of these 6 directions to their distance gradient; each group
+#: keeps its extreme points under tilts in 8 directions perpendicular to the group's gradient.
+_BINS = np.concatenate([np.eye(3), -np.eye(3)])
+_ANGLES = np.arange(8) * (np.pi / 4)
+
+
+def initial_constraints(rows: Rows, channel: np.ndarray, margin: float, tilt_rad: float = 0.2) -> np.ndarray:
+    """Rows to put in the first QP: among those closer than ``margin``, per group (body,
+    channel, binned gradient a), the rows that are smallest after a small rotation ω of the
+    body perpendicular to a (|ω| = ``tilt_rad``, 8 directions, and ω = 0).
+
+    A row reads d_p + a·v + ω·((x_p − o) × a). Over a group a is nearly constant, so the row
+    that binds first for a step (v, ω) is the minimiser of d_p + ω·φ_p[3:6]: an extreme point
+    of the group (for a plane, a vertex of the convex hull); ω along a does not change it. The
+    others are implied to first order; ``qp_step`` checks every candidate row after each QP and
+    adds any violated one, so this choice affects speed, never feasibility.
+    """
+    close = np.flatnonzero(rows.value < margin)
+    if len(close) == 0:
+        return close
+    chosen = np.zeros(len(rows), dtype=bool)
+    _choose_extreme_rows(rows.value, rows.phi, rows.body_a, np.asarray(channel, np.intp), close, float(tilt_rad), _COS,
+                         _SIN, chosen)
+    return np.flatnonzero(chosen)
+
+
+_COS, _SIN = np.cos(_ANGLES), np.sin(_ANGLES)
+
+
+@numba.njit(cache=True)
+def _choose_extreme_rows(value, phi, body, channel, close, tilt, cos, sin, chosen):
+    """chosen[r] ← row r of ``close`` is an extreme row of its group (``initial_constraints``):
+    the rows grouped by key in a stable sort, then ``_extreme_rows`` per group."""
+    key = _group_keys(phi, body, channel, close)
+    order = _stable_order(key)
+    starts = np.empty(order.shape[0] + 1, np.intp)
+    starts[0], count = 0, 1
+    for i in range(1, order.shape[0]):
+        if key[order[i]] != key[order[i - 1]]:
+            starts[count] = i
+            count += 1
+    starts[count] = order.shape[0]
+    grouped = close[order]
+    extreme = np.empty(grouped.shape[0], np.bool_)
+    _extreme_rows(value, phi, grouped, starts[:count + 1], tilt, cos, sin, extreme)
+    for i in range(grouped.shape[0]):
+        chosen[grouped[i]] = extreme[i]
+
+
+@helper
+def _stable_order(key):
+    """The permutation of numpy's stable argsort of small non-negative integer keys, by counting."""
+    lo, hi = key[0], key[0]
+    for k in key:  # a loop: np.min / np.max would each compile numba's reduction machinery
+        lo, hi = min(lo, k), max(hi, k)
+    start = np.zeros(hi - lo + 2, np.intp)
+    for k in key:
+        start[k - lo + 1] += 1
+    for i in range(1, start.shape[0]):
+        start[i] += start[i - 1]
+    order = np.empty(key.shape[0], np.intp)
+    for i in range(key.shape[0]):
+        order[start[key[i] - lo]] = i
+        start[key[i] - lo] += 1
+    return order
+
+
+@helper
+def _group_keys(phi, body, channel, close):
+    """(body · 64 + channel) · 32 + bin of each close row, the bin the argmax of a·(±e_x, ±e_y,
+    ±e_z) (first on ties, as ``np.argmax(a @ _BINS.T)``, whose entries are exactly ±a_j)."""
+    out = np.empty(close.shape[0], np.intp)
+    for m in range(close.shape[0]):
+        r = close[m]
+        best, top = 0, phi[r, 0]
+        if phi[r, 1] > top:
+            best, top = 1, phi[r, 1]
+        if phi[r, 2] > top:
+            best, top = 2, phi[r, 2]
+        if -phi[r, 0] > top:
+            best, top = 3, -phi[r, 0]
+        if -phi[r, 1] > top:
+            best, top = 4, -phi[r, 1]
+        if -phi[r, 2] > top:
+            best = 5
+        out[m] = (body[r] * 64 + channel[r]) * 32 + best
+    return out
+
+
+@helper
+def _pairwise_sum(x, rows, col, lo, n):
+    """Σ x[rows[lo:lo + n], col] in numpy's order (``pairwise_sum`` of its add loops: 8
+    accumulators up to 128 terms, halves beyond), so that sums match np.add.reduce bit for bit."""
+    if n < 8:
+        res = -0.0
+        for i in range(lo, lo + n):
+            res += x[rows[i], col]
+        return res
+    if n <= 128:
+        r = np.empty(8)
+        for j in range(8):
+            r[j] = x[rows[lo + j], col]
+        i = 8
+        while i < n - n % 8:
+            for j in range(8):
+                r[j] += x[rows[lo + i + j], col]
+            i += 8
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        while i < n:
+            res += x[rows[lo + i], col]
+            i += 1
+        return res
+    half = n // 2
+    half -= half % 8
+    return _pairwise_sum(x, rows, col, lo, half) + _pairwise_sum(x, rows, col, lo + half, n - half)
+
+
+@helper
+def _extreme_rows(value, phi, rows, bounds, tilt, cos, sin, out):
+    """For each group g (rows[bounds[g]:bounds[g + 1]]): its mean gradient direction ā, two
+    unit tangents, the 8 tilts ω (|ω| = ``tilt``) and the rows whose d + ω·φ[3:6], or d, is
+    the group's smallest; ``out`` marks them. The arithmetic of the array form, sums in its
+    order (reduceat's pairwise sums, the einsum's (x + z) + y)."""
+    tilt_w, best = np.empty((8, 3)), np.empty(9)  # a group's tilts ω / tilt, its smallest scores
+    for g in range(bounds.shape[0] - 1):
+        lo, hi = bounds[g], bounds[g + 1]
+        # np.add.reduceat: the first row, plus numpy's pairwise sum of the others
+        # (column indices as int64, not literals: one compilation of the recursive sum, not three)
+        c0, c1, c2, rest = np.int64(0), np.int64(1), np.int64(2), hi - lo - 1
+        m0 = phi[rows[lo], 0] + _pairwise_sum(phi, rows, c0, lo + 1, rest) if rest > 0 else phi[rows[lo], 0]
+        m1 = phi[rows[lo], 1] + _pairwise_sum(phi, rows, c1, lo + 1, rest) if rest > 0 else phi[rows[lo], 1]
+        m2 = phi[rows[lo], 2] + _pairwise_sum(phi, rows, c2, lo + 1, rest) if rest > 0 else phi[rows[lo], 2]
+        n = max(np.sqrt(m0 * m0 + m1 * m1 + m2 * m2), 1e-12)
+        m0, m1, m2 = m0 / n, m1 / n, m2 / n
+        # e = the axis of the smallest |ā_j| (first on ties); t1 = ā × e
+        b0, b1, b2 = abs(m0), abs(m1), abs(m2)
+        e = 0
+        if b1 < b0:
+            e = 1
+        if b2 < (b1 if e == 1 else b0):
+            e = 2
+        e0, e1, e2 = 1.0 if e == 0 else 0.0, 1.0 if e == 1 else 0.0, 1.0 if e == 2 else 0.0
+        t10, t11, t12 = m1 * e2 - m2 * e1, m2 * e0 - m0 * e2, m0 * e1 - m1 * e0
+        n = max(np.sqrt(t10 * t10 + t11 * t11 + t12 * t12), 1e-12)
+        t10, t11, t12 = t10 / n, t11 / n, t12 / n
+        t20, t21, t22 = m1 * t12 - m2 * t11, m2 * t10 - m0 * t12, m0 * t11 - m1 * t10
+        for d in range(8):
+            tilt_w[d, 0] = cos[d] * t10 + sin[d] * t20
+            tilt_w[d, 1] = cos[d] * t11 + sin[d] * t21
+            tilt_w[d, 2] = cos[d] * t12 + sin[d] * t22
+        best[:] = np.inf
+        for i in range(lo, hi):
+            r = rows[i]
+            best[0] = min(best[0], value[r])
+            for d in range(8):
+                score = value[r] + tilt * ((phi[r, 3] * tilt_w[d, 0] + phi[r, 5] * tilt_w[d, 2])
+                                           + phi[r, 4] * tilt_w[d, 1])
+                best[d + 1] = min(best[d + 1], score)
+        for i in range(lo, hi):
+            r = rows[i]
+            hit = value[r] <= best[0]
+            for d in range(8):
+                if hit:
+                    break
+                hit = value[r] + tilt * ((phi[r, 3] * tilt_w[d, 0] + phi[r, 5] * tilt_w[d, 2])
+                                         + phi[r, 4] * tilt_w[d, 1]) <= best[d + 1]
+            out[i] = hit
+
+
+def _distance_block(track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, x_w: np.ndarray, x_c: np.ndarray,
+                    body: np.ndarray, origin: np.ndarray, d: np.ndarray, grad_c: np.ndarray,
+                    clearance: np.ndarray | float = 0.0) -> Rows:
+    """Non-penetration rows of points against a channel: the grid distance minus the grid's
+    measured error bound there (``retarget.geometry.margins``), so that the exact surface is respected,
+    minus ``clearance`` (m): for robot points, how far Unitree's original surface may lie
+    beyond the shipped mesh (``Problem.surface_margin``)."""
+    value = d - track.margin.at(x_c) if track.margin is not None else d
+    return signed_distance_rows(value - clearance, grad_c, x_w, origin, body, track.body, rot_c, pos_c)
+
+
+@dataclass
+class _ConstraintRows:
+    """Constraint rows collected per block, each with its channel code (``initial_constraints``)."""
+
+    rows: list[Rows]
+    channel: list[np.ndarray]
+
+    def add(self, rows: Rows, channel: int) -> None:
+        self.rows.append(rows)
+        self.channel.append(np.full(len(rows), channel))
+
+
+@dataclass(frozen=True)
+class _RobotPairs:
+    """Active robot probe–channel pairs of one channel at the iterate."""
+
+    channel: int
+    rot_c: np.ndarray
+    pos_c: np.ndarray
+    probes: np.ndarray  # (k,) indices into ``Problem.robot``
+    x_w: np.ndarray  # (k, 3)
+    x_c: np.ndarray  # (k, 3)
+    query: ProximityQuery
+    desired: Triples  # the demonstrated triples of ``probes``
+
+
+def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, fr: LinkFrames,
+                   centre_w: np.ndarray, c: int, con: _ConstraintRows) -> tuple[_RobotPairs | None, np.ndarray]:
+    """Robot probes against channel c: the active pairs (cost), their non-penetration rows and
+    those of the hull/vertex guards that can come within the margin. Returns the pairs and each
+    link's smallest probe distance (the band where not queried)."""
+    band, margin, check = problem.band_m, problem.solver.constraint_margin_m, problem.solver.check_margin_m
+    track = problem.channels[c]
+    rot_c, pos_c = channel_pose(state, track, targets.t)
+    near_links = candidate_links(problem, track, centre_w, rot_c, pos_c)
+    # area probes: near links, and links with a probe in contact range in the demonstration
+    links = np.flatnonzero(near_links | targets.robot_links[c])
+    # distance of every area probe, or a lower bound (the band) where not queried
+    probe_d = np.full(len(problem.robot), band)
+    pairs = None
+    probes = _probes_near(problem.robot, links, fr, track, rot_c, pos_c, band, targets.robot_active[c])
+    if probes is not None:
+        sel, x_w, x_c = probes
+        q = track.channel.query(x_c, normals=False)
+        probe_d[sel] = q.d
+        active = np.flatnonzero(q.in_band | targets.robot_active[c][sel])
+        # Beyond the grid's band a pair active in the demonstration reads d = band with no
+        # gradient: the distance to its demonstrated witness pulls it in instead (``far_field``),
+        # for the interaction and the contact-state rows alike. Without it the G1's pelvis and right knee stayed 19–22 cm
+        # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
+        x_a = np.take(x_c, active, axis=0)
+        desired = targets.robot[c].take(sel[active])
+        pairs = _RobotPairs(c, rot_c, pos_c, sel[active], np.take(x_w, active, axis=0), x_a,
+                            far_field(q, active, x_a, desired, track.is_ground), desired)
+        # Against the ground the hull vertices (guards) imply every area probe: skip those.
+        if not track.is_ground:
+            ib = np.flatnonzero(q.in_band & (q.d < check))
+            body = problem.robot.body[sel[ib]]
+            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, ib, axis=0), np.take(x_c, ib, axis=0), body,
+                                    np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0),
+                                    np.take(problem.surface_margin, body)), c)
+    link_min = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
+    # Guard points: the distance field is 1-Lipschitz, so a guard is at least as far as its
+    # nearest area probe (its anchor) minus their separation; only guards whose bound is
+    # within the margin can be close enough to matter, the rest are provably clear. A link
+    # whose closest probe, less its farthest anchor separation, is beyond the margin has
+    # no such guard: its guards are not even looked at.
+    guards, anchor, anchor_d, reach = ((problem.guards, problem.guard_anchor, problem.guard_anchor_d,
+                                        problem.guard_reach) if track.is_ground
+                                       else (problem.vertex_guards, problem.vertex_anchor, problem.vertex_anchor_d,
+                                             problem.vertex_reach))
+    gi = _guards_within(guards.offsets, np.flatnonzero(near_links & (link_min - reach < margin)), anchor, anchor_d,
+                        probe_d, margin)
+    if len(gi):
+        con.add(_guard_rows(problem, fr, track, rot_c, pos_c, guards, gi, check), c)
+    return pairs, link_min
+
+
+def _probes_near(probes: ProbeSet, links: np.ndarray, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray,
+                 pos_c: np.ndarray, reach: float,
+                 demo_active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The probes of ``links`` (sorted) within the channel's bounds grown by ``reach``, or active
+    in the demonstration (``demo_active`` (P,)): their indices, world and channel-frame positions,
+    in order, by one numba pass with the arithmetic of ``ProbeSet.posed_bodies``,
+    ``to_channel_frame`` and ``near_channel``. None when the links carry no probe."""
+    n = int(np.sum(probes.offsets[links + 1] - probes.offsets[links]))
+    if n == 0:
+        return None
+    index, x_w, x_c = np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
+    k = _probes_near_into(probes.points, probes.offsets, np.asarray(links, np.intp), fr.rot, fr.pos,
+                          kernel_pose(rot_c), kernel_pose(pos_c), track.is_ground,
+                          np.asarray(track.lower - reach, np.float64), np.asarray(track.upper + reach, np.float64),
+                          float(reach), demo_active, index, x_w, x_c)
+    return index[:k], x_w[:k], x_c[:k]
+
+
+@numba.njit(cache=True)
+def _probes_near_into(points, offsets, links, rot, pos, rot_c, pos_c, ground, lower, upper, reach, demo_active,
+                      out_index, out_w, out_c):
+    k = 0
+    for link in links:
+        for p in range(offsets[link], offsets[link + 1]):
+            w0, w1, w2 = _posed_point(points, p, link, rot, pos)
+            x0, x1, x2 = _to_channel_point(w0, w1, w2, rot_c, pos_c)
+            near = (x2 < reach if ground else (lower[0] < x0 < upper[0] and lower[1] < x1 < upper[1]
+                                               and lower[2] < x2 < upper[2]))
+            if near or demo_active[p]:
+                out_index[k] = p
+                out_w[k, 0], out_w[k, 1], out_w[k, 2] = w0, w1, w2
+                out_c[k, 0], out_c[k, 1], out_c[k, 2] = x0, x1, x2
+                k += 1
+    return k
+
+
+def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray,
+                guards: ProbeSet, index: np.ndarray, check: float) -> Rows:
+    """Non-penetration rows (``_distance_block``, clearance ``Problem.surface_margin``) of the
+    robot guard points ``index`` closer than ``check`` to the channel: one numba pass that poses
+    each point, reads the channel's distance and writes the row, for the ground and for grid
+    channels; the same bits as the array form (kept for other channels)."""
+    channel = track.channel
+    if not (track.is_ground or isinstance(channel, SDFChannel)):
+        gb = guards.body[index]
+        g_w = guards.posed_index(index, fr.rot, fr.pos)
+        g_c = to_channel_frame(g_w, rot_c, pos_c)
+        d, grad, in_band = channel.distance(g_c)
+        ib = np.flatnonzero(in_band & (d < check))
+        body = gb[ib]
+        return _distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0), body,
+                               np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
+                               np.take(problem.surface_margin, body))
+    n = len(index)
+    value, phi, body, x_w, grad_c = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
+    if track.is_ground:
+        grid, band = None, float(channel.band_m)
+        phi_nodes, origin, inv, upper, strides = np.zeros(1), np.zeros(3), 0.0, np.zeros(3), np.zeros(3, np.intp)
+    else:
+        grid, band = channel.grid, float(channel.band_m)
+        phi_nodes, origin, inv, upper, strides = grid._phi, grid.origin, 1.0 / grid.resolution, grid._upper, grid._strides
+    margin = track.margin
+    m_origin, m_res, m_cells, m_values = ((margin.origin, float(margin.resolution), np.array(margin.cells, np.intp),
+                                           margin.values) if margin is not None
+                                          else (np.zeros(3), 1.0, np.zeros(3, np.intp), np.zeros(1)))
+    moving = track.body != FIXED
+    k = _guard_rows_into(guards.points, guards.body, np.asarray(index, np.intp), fr.rot, fr.pos,
+                         kernel_pose(rot_c), kernel_pose(pos_c), grid is None, phi_nodes, origin,
+                         inv, upper, strides, band, float(check), margin is not None,
+                         m_origin, m_res, m_cells, m_values, problem.surface_margin, moving, value, phi, body, x_w, grad_c)
+    if k == 1:  # numpy turns a single row with another BLAS kernel (matrix-vector): as it does
+        phi[:1] = twist_factors(grad_c[:1] @ rot_c.T, x_w[:1], fr.pos[body[:1]], pos_c if moving else None)
+    return Rows(value[:k], np.ones(k), phi[:k], body[:k], np.full(k, track.body, dtype=np.intp))
+
+
+@numba.njit(cache=True)
+def _guard_rows_into(points, point_body, index, rot, pos, rot_c, pos_c, ground, phi_nodes, origin, inv, upper, strides,
+                     band, check, with_margin, m_origin, m_res, m_cells, m_values, surface_margin, moving,
+                     out_value, out_phi, out_body, out_x, out_grad):
+    """Rows of ``_guard_rows`` (returns their count): per point, the arithmetic of
+    ``ProbeSet.posed_index``, ``to_channel_frame``, ``SDFChannel.distance`` (or the ground's z),
+    ``ErrorMargin.at``, ``signed_distance_rows``."""
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
+    for m in range(index.shape[0]):
+        p = index[m]
+        b = point_body[p]
+        w0 = rot[b, 0, 0] * points[p, 0] + rot[b, 0, 1] * points[p, 1] + rot[b, 0, 2] * points[p, 2] + pos[b, 0]
+        w1 = rot[b, 1, 0] * points[p, 0] + rot[b, 1, 1] * points[p, 1] + rot[b, 1, 2] * points[p, 2] + pos[b, 1]
+        w2 = rot[b, 2, 0] * points[p, 0] + rot[b, 2, 1] * points[p, 1] + rot[b, 2, 2] * points[p, 2] + pos[b, 2]
+        x0, x1, x2 = _to_channel_point(w0, w1, w2, rot_c, pos_c)
+        if ground:
+            d, g0, g1, g2 = x2, 0.0, 0.0, 1.0
+            if not (d < band and d < check):
+                continue
+        else:
+            u0, u1, u2 = (x0 - origin[0]) * inv, (x1 - origin[1]) * inv, (x2 - origin[2]) * inv
+            if not (0.0 <= u0 <= upper[0] and 0.0 <= u1 <= upper[1] and 0.0 <= u2 <= upper[2]):
+                continue
+            ix, fx = _cell_inside(u0, upper[0])
+            iy, fy = _cell_inside(u1, upper[1])
+            iz, fz = _cell_inside(u2, upper[2])
+            d, g0, g1, g2 = _trilinear_phi(phi_nodes, ix * strides[0] + iy * strides[1] + iz * strides[2], strides[0],
+                                           strides[1], fx, fy, fz)
+            if not (d < band and d < check):
+                continue
+            g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
+        value = d
+        if with_margin:
+            c0 = int(np.floor((x0 - m_origin[0]) / m_res))
+            c1 = int(np.floor((x1 - m_origin[1]) / m_res))
+            c2 = int(np.floor((x2 - m_origin[2]) / m_res))
+            cy, cz = m_cells[1], m_cells[2]
+            if 0 <= c0 < m_cells[0] and 0 <= c1 < cy and 0 <= c2 < cz:
+                value = d - m_values[c0 * (cy * cz) + c1 * cz + c2]
+            else:
+                value = d - 0.0
+        out_value[k] = value - surface_margin[b]
+        out_body[k] = b
+        out_x[k, 0], out_x[k, 1], out_x[k, 2] = w0, w1, w2
+        out_grad[k, 0], out_grad[k, 1], out_grad[k, 2] = g0, g1, g2
+        a0, a1, a2 = _to_world_direction(g0, g1, g2, rot_c)
+        if moving:
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], pos_c[0], pos_c[1], pos_c[2], out_phi, k)
+        else:
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], 0.0, 0.0, 0.0, out_phi, k)
+            for j in range(6, 12):
+                out_phi[k, j] = 0.0
+        k += 1
+    return k
+
+
+def _guards_within(offsets: np.ndarray, links: np.ndarray, anchor: np.ndarray, anchor_d: np.ndarray,
+                   probe_d: np.ndarray, margin: float) -> np.ndarray:
+    """(k,) the guard points of ``links`` (sorted) whose anchor's distance less their separation
+    is below ``margin`` (guard ranges ``offsets``), in order: one pass, no gathered arrays."""
+    out = np.empty(int(np.sum(offsets[links + 1] - offsets[links])), np.intp)
+    return out[:_guards_within_into(offsets, links, anchor, anchor_d, probe_d, float(margin), out)]
+
+
+@numba.njit(cache=True)
+def _guards_within_into(offsets, links, anchor, anchor_d, probe_d, margin, out):
+    k = 0
+    for link in links:
+        for g in range(offsets[link], offsets[link + 1]):
+            if probe_d[anchor[g]] - anchor_d[g] < margin:
+                out[k] = g
+                k += 1
+    return k
+
+
+def _robot_cost(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
+                counts: np.ndarray | None) -> tuple[list[Rows], int, np.ndarray]:
+    """Interaction rows of the robot probes (eq. m-energy), f_ℓ/N_ℓ with N_ℓ the distinct active
+    probes of link ℓ over all channels (or ``counts``). Returns rows, pair count, N_ℓ as counted."""
+    active_any = np.zeros(len(problem.robot), dtype=bool)
+    for p in pairs:
+        active_any[p.probes] = True
+    link_counts = np.bincount(problem.robot.body[active_any], minlength=NUM_LINKS)
+    n_active = link_counts if counts is None else counts[:NUM_LINKS]
+    norm_link = problem.interaction.link_weight / np.maximum(n_active, 1)
+    cost = []
+    for p in pairs:
+        track = problem.channels[p.channel]
+        body = problem.robot.body[p.probes]
+        ps = PairSet(p.x_w, p.x_c, np.take(fr.pos, body, axis=0), body, track.body, p.rot_c, p.pos_c, p.query,
+                     p.desired, norm_link[body])
+        cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
+    return cost, sum(len(p.probes) for p in pairs), link_counts
+
+
+@dataclass(frozen=True)
+class ContactSelection:
+    """The contact-state probes of a frame, chosen at its first iterate (like N_ℓ, so that E
+    changes smoothly within the frame): per (channel, unit) the unit's closest probe then, its
+    target gap (m), whether it is to touch (else to stay clear) and the row's weight."""
+
+    channel: np.ndarray  # (k,)
+    probe: np.ndarray  # (k,) index into Problem.robot
+    target: np.ndarray  # (k,) m
+    touching: np.ndarray  # (k,) bool
+    weight: np.ndarray  # (k,)
+
+
+def _select_contact_rows(problem: Problem, targets: FrameTargets, pairs: list[_RobotPairs]) -> ContactSelection:
+    """Per channel and contact unit (``Problem.contact_units``: links that share human parts,
+    the evaluation's units), the unit's closest active probe where the unit is not in its
+    demonstrated contact state (``InteractionConfig.hold_weight``): a unit whose parts touch is
+    to come in to (d̂_u)₊, one whose parts stay off out to min(d̂_u, c̄). Per unit, not per
+    link: the G1's small ankle-pitch housing shares the person's ankle with the foot link and
+    cannot reach the floor whenever the person's ankle does."""
+    cfg = problem.interaction
+    unit_of = problem.contact_units
+    out = []
+    for p in pairs:
+        if len(p.probes) == 0:
+            continue
+        # per unit (links sharing human parts) the demonstrated gap of its parts' surface; links
+        # of no unit keep the smallest d̂ of their own probes
+        hat = np.full(unit_of.max() + 1, np.inf)
+        np.minimum.at(hat, unit_of, targets.robot_link_d[p.channel])
+        gap = targets.unit_d[p.channel]
+        hat[:len(gap)] = gap
+        unit = unit_of[problem.robot.body[p.probes]]
+        order = np.lexsort((p.query.d, unit))  # per unit, closest first
+        first = order[np.concatenate([[True], unit[order][1:] != unit[order][:-1]])]
+        lk = unit[first]
+        touching = np.maximum(hat[lk], 0.0) < cfg.hold_m
+        target = np.where(touching, np.maximum(hat[lk], 0.0), np.minimum(hat[lk], cfg.clearance_m))
+        clearance = cfg.ground_clearance_weight if problem.channels[p.channel].is_ground else cfg.clearance_weight
+        out.append((np.full(len(first), p.channel), p.probes[first], target, touching,
+                    np.where(touching, cfg.hold_weight, clearance)))
+    if not out:
+        return ContactSelection(*(np.zeros(0, t) for t in (np.intp, np.intp, float, bool, float)))
+    return ContactSelection(*(np.concatenate(parts) for parts in zip(*out)))
+
+
+def _contact_state_rows(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
+                        selection: ContactSelection) -> list[Rows]:
+    """Rows r = d − target of the selected probes (those still in the band) whose unit is out of
+    its demonstrated state at this iterate: too far where it is to touch, too close where it is
+    to stay clear."""
+    out = []
+    for p in pairs:
+        mine = np.flatnonzero(selection.channel == p.channel)
+        if len(mine) == 0 or len(p.probes) == 0:
+            continue
+        at = np.minimum(np.searchsorted(p.probes, selection.probe[mine]), len(p.probes) - 1)
+        found = p.probes[at] == selection.probe[mine]  # p.probes is sorted
+        k, mine = at[found], mine[found]
+        # a row where the unit is not in its demonstrated state at this iterate
+        d = p.query.d[k]
+        wrong = np.where(selection.touching[mine], d > selection.target[mine], d < selection.target[mine])
+        k, mine = k[wrong], mine[wrong]
+        if len(k) == 0:
+            continue
+        link = problem.robot.body[p.probes[k]]
+        track = problem.channels[p.channel]
+        rows = signed_distance_rows(p.query.d[k] - selection.target[mine], p.query.grad_d[k], p.x_w[k],
+                                    np.take(fr.pos, link, axis=0), link, track.body, p.rot_c, p.pos_c)
+        # a far-field pull (beyond the band) moves the robot's part in, never the object out to
+        # it: dragged by the pelvis the person leans on, the free chair drifted 5.6 cm off its path
+        far = ~p.query.in_band[k]
+        phi = rows.phi.copy()
+        phi[far, 6:] = 0.0
+        out.append(Rows(rows.value, selection.weight[mine], phi, rows.body_a, np.where(far, FIXED, rows.body_b)))
+    return out
+
+
+def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i: int, count: int | None,
+                 con: _ConstraintRows) -> tuple[list[Rows], int, int]:
+    """Free object i's probes against every other channel: interaction rows (object weights),
+    non-penetration rows of its probes and of its hull guards. Returns rows, pair count and
+    its active probe count."""
+    band, check = problem.band_m, problem.solver.check_margin_m
+    obj = problem.objects[i]
+    body = NUM_LINKS + i
+    o_w = obj.probes @ state.obj_rot[i].T + state.obj_pos[i]
+    own = problem.channels[obj.channel]
+    pairs = []
+    for c, track in enumerate(problem.channels):
+        if c == obj.channel:
+            continue
+        rot_c, pos_c = channel_pose(state, track, targets.t)
+        o_c = to_channel_frame(o_w, rot_c, pos_c)
+        demo_active = targets.objects_active[i][c]
+        sel = np.flatnonzero(near_channel(track, o_c, band) | demo_active)
+        if len(sel) == 0:
+            continue
+        q = track.channel.query(np.take(o_c, sel, axis=0), normals=False)
+        active = np.flatnonzero(q.in_band | demo_active[sel])
+        a = sel[active]
+        a_c = np.take(o_c, a, axis=0)
+        pairs.append((c, track, rot_c, pos_c, a, a_c,
+                      far_field(q, active, a_c, targets.objects[i][c].take(a), track.is_ground)))
+        ib = np.flatnonzero(q.in_band & (q.d < check))
+        pts = sel[ib]
+        con.add(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
+                                np.full(len(ib), body), np.broadcast_to(state.obj_pos[i], (len(ib), 3)),
+                                q.d[ib], np.take(q.grad_d, ib, axis=0)), c)
+        # the object's own hull guards against the ground, furniture and other objects
+        g_w = own.guards @ state.obj_rot[i].T + state.obj_pos[i]
+        g_c = to_channel_frame(g_w, rot_c, pos_c)
+        gs = np.flatnonzero(near_channel(track, g_c, check))
+        if len(gs):
+            d, grad, in_band = track.channel.distance(g_c[gs])
+            gb = np.flatnonzero(in_band & (d < check))
+            con.add(_distance_block(track, rot_c, pos_c, g_w[gs[gb]], g_c[gs[gb]], np.full(len(gb), body),
+                                    np.broadcast_to(state.obj_pos[i], (len(gb), 3)), d[gb], grad[gb]), c)
+    active_any = np.zeros(len(obj.probes), dtype=bool)
+    for pair in pairs:
+        active_any[pair[4]] = True
+    n_counted = int(active_any.sum())
+    weight = problem.interaction.link_weight / max(n_counted if count is None else count, 1)
+    cost, total = [], 0
+    for c, track, rot_c, pos_c, sel, sel_c, q in pairs:
+        ps = PairSet(o_w[sel], sel_c,
+                     np.broadcast_to(state.obj_pos[i], (len(sel), 3)), np.full(len(sel), body), track.body,
+                     rot_c, pos_c, q, targets.objects[i][c].take(sel), np.full(len(sel), weight))
+        cost.append(interaction_rows(ps, track.channel, problem.interaction.object_weights, problem.interaction))
+        total += len(sel)
+    return cost, total, n_counted
+
+
+def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timings: dict[str, float],
+              counts: np.ndarray | None = None, contact: ContactSelection | None = None) -> Linearisation:
+    """All rows of the QP at the current iterate.
+
+    ``counts`` (L + O,) fixes N_ℓ, the active probe count of each link and object, instead of
+    counting at this iterate: ``solve_frame`` counts once per frame, so that E stays a smooth
+    function of the iterate within the frame (a count that jumps by one as a probe crosses d̄
+    rescales the whole link's term, and the trust-region test would read that as model error).
+    ``contact`` fixes the contact-state rows the same way (chosen here when None).
+    """
+    tm = SectionTimer(timings)
+    margin, check = problem.solver.constraint_margin_m, problem.solver.check_margin_m
+    fr = frames_at(problem, state, state.q)
+    centre_w = np.einsum("lij,lj->li", fr.rot, problem.link_center) + fr.pos
+    tm.lap("kinematics")
+
+    con = _ConstraintRows([], [])
+    robot_pairs, link_min = [], np.full((len(problem.channels), NUM_LINKS), np.inf)
+    for c in range(len(problem.channels)):
+        pairs, link_min[c] = _robot_channel(problem, state, targets, fr, centre_w, c, con)
+        if pairs is not None:
+            robot_pairs.append(pairs)
+    tm.lap("robot_channels")
+
+    cost, total_pairs, link_counts = _robot_cost(problem, fr, robot_pairs, counts)
+    if contact is None:
+        contact = _select_contact_rows(problem, targets, robot_pairs)
+    cost += _contact_state_rows(problem, fr, robot_pairs, contact)
+    tm.lap("robot_rows")
+
+    object_counts = []
+    for i in range(len(problem.objects)):
+        rows, pairs, n = _object_rows(problem, state, targets, i, None if counts is None else int(counts[NUM_LINKS + i]),
+                                      con)
+        cost += rows
+        total_pairs += pairs
+        object_counts.append(n)
+    tm.lap("object_rows")
+
+    for c, track in enumerate(problem.channels):
+        if track.is_ground or len(track.guards) == 0:
+            continue
+        rot_c, pos_c = channel_pose(state, track, targets.t)
+        # a link can hold an object's edge only where its own surface, hence an area probe
+        # within the link's sampling gap, comes close to the object
+        links = np.flatnonzero(link_min[c] < problem.sampling_gap + margin)
+        links = links[problem.link_grids.has_grid[links]]
+        con.add(object_guard_rows(problem, fr, centre_w, links, track, rot_c, pos_c, check), len(problem.channels) + c)
+        # out to the constraint margin only: out to the check margin the carry linearised 424
+        # surface rows per call (+16 ms per frame); a step that pushes a face in is restored
+        con.add(object_surface_rows(problem, fr, centre_w, links, track, rot_c, pos_c, margin),
+                len(problem.channels) + c)
+    tm.lap("object_guards")
+
+    min_dist = min((float(r.value.min()) for r in con.rows if len(r)), default=np.inf)
+    # self-collision of the meshes: grouped like surface rows, per other link (channel code);
+    # candidates out to the check margin like every other pair: a full trust-region step moves
+    # a foot by more than the 2 cm constraint margin, and on Bandai's walk one ankle went 40 mm
+    # into the other knee unseen, after which no QP of the clip was solvable (cluster rows for
+    # the 2-5 cm band instead were measured: 2.6 ms faster per walk frame, but 24 failed QPs
+    # in Bandai's first 60 frames)
+    self_rows = self_mesh_rows(problem, fr, centre_w, check)
+    con.rows.append(self_rows)
+    con.channel.append(2 * len(problem.channels) + self_rows.body_b)
+    tm.lap("self_meshes")
+
+    surface_channel = np.concatenate(con.channel).astype(np.intp) if con.channel else np.zeros(0, np.intp)
+    tm.lap("constraint_selection")
+
+    capsules = self_collision_rows(problem, fr, margin)
+    min_self = min(float(capsules.value.min()) if len(capsules) else np.inf,
+                   float(self_rows.value.min()) if len(self_rows) else np.inf)
+    # the surface rows, then the capsule rows and the base-step rows (always in the QP, like the
+    # capsule rows; not counted as self-collision), concatenated once
+    constraints = Rows.concat([*con.rows, capsules, base_step_rows(problem, state, targets.t, fr)])
+    tm.lap("self_collision")
+
+    cost.append(stance_rows(targets.stance, fr, problem.stance_cfg.weight))
+    # E_sty,r and E_sty,o in one batch: the tracked links, then the free objects
+    links = problem.style.links
+    pos_weight, rot_weight = problem.style_weights
+    cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]), np.concatenate([fr.rot[links], state.obj_rot]),
+                          targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
+    com = None
+    if targets.com is not None:
+        if state.com_data is None:
+            state.com_data = problem.kin.new_data()
+        com = com_residual(problem.kin.model, state.com_data, state.q, targets.com)
+    tm.lap("style_rows")
+    return Linearisation(Rows.concat(cost), constraints, surface_channel, margin, fr,
+                         total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]),
+                         contact, com)
+
+
+def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
+                      track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+    """Distances of an object's guard points (corners, edge points) to every robot link of
+    ``links`` (links with a distance grid) closer than ``reach``, from each link's own grid
+    (link frame), in one stacked query; ``centre_w`` (L, 3) the links' bounding-sphere centres.
+
+    A box edge pressed into an arm lies between the arm's probes; seen from the arm's distance
+    field it is the deepest point. Rows, grouped by link: body A the object (FIXED when
+    pinned), body B the link.
+    """
+    g_w = track.guards @ rot_c.T + pos_c
+    pair_link, guard = _spheres_reach(np.ascontiguousarray(centre_w[links]), problem.link_radius[links], g_w, reach)
+    if len(guard) == 0:
+        return Rows.empty()
+    grids = problem.link_grids
+    value, phi, link = np.empty(len(guard)), np.empty((len(guard), 12)), np.empty(len(guard), np.intp)
+    k = _object_guard_rows_into(links[pair_link], guard, g_w, fr.rot, fr.pos, grids.phi.ravel(), grids.origin,
+                                grids.inv_resolution, grids.upper, grids.strides, grids.offset, float(reach),
+                                problem.surface_margin, kernel_pose(pos_c), value, phi, link)
+    return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
+
+
+@numba.njit(cache=True)
+def _object_guard_rows_into(link, guard, g_w, rot, pos, phi, origin, inv_resolution, upper, strides, offset, reach,
+                            surface_margin, pos_c, out_value, out_phi, out_link):
+    """The rows of ``object_guard_rows`` (returns their count): guard point guard[q] (world
+    ``g_w``) in the frame of link[q], Rᵀ(x − o) summed as numpy's einsum sums it (left to right),
+    its distance in the link's grid, and the row where it lies inside closer than ``reach``."""
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
+    for q in range(guard.shape[0]):
+        if q + PREFETCH_AHEAD < guard.shape[0]:
+            g = guard[q + PREFETCH_AHEAD]
+            _prefetch_link_cell(g_w[g, 0], g_w[g, 1], g_w[g, 2], link[q + PREFETCH_AHEAD], rot, pos, phi, origin,
+                                inv_resolution, upper, strides, offset)
+        b, g = link[q], guard[q]
+        val, g0, g1, g2, inside = _link_grid_distance(g_w[g, 0], g_w[g, 1], g_w[g, 2], b, rot, pos, phi, origin,
+                                                      inv_resolution, upper, strides, offset)
+        if inside and val < reach:
+            _object_link_row(val, g0, g1, g2, g_w[g, 0], g_w[g, 1], g_w[g, 2], b, rot, pos, pos_c, surface_margin,
+                             out_value, out_phi, out_link, k)
+            k += 1
+    return k
+
+
+@inlined
+def _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
+    """A world point in link b's frame (``_in_frame``) and ``GridStack.distance`` there: Φ, its gradient (zero outside the grid) and whether it lies
+    inside (outside, Φ of the cell of its projection, as the array form)."""
+    x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
+    r, fx, fy, fz, inside = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
+    val, g0, g1, g2 = _trilinear_phi(phi, r, strides[b, 0], strides[b, 1], fx, fy, fz)
+    scale = inv_resolution[b] * inside
+    return val, g0 * scale, g1 * scale, g2 * scale, inside
+
+
+@helper
+def _object_link_row(val, g0, g1, g2, w0, w1, w2, b, rot, pos, pos_c, surface_margin, out_value, out_phi, out_link,
+                     k):
+    """Row k: Φ − m_b ≥ 0 of an object point (world w) at link b's distance Φ with gradient g
+    (link frame): body A the object (origin ``pos_c``), body B the link; R_b g summed as numpy's
+    einsum sums three contiguous terms ((x + z) + y)."""
+    a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+    a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+    a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+    out_value[k] = val - surface_margin[b]
+    out_link[k] = b
+    _twist_row(a0, a1, a2, w0, w1, w2, pos_c[0], pos_c[1], pos_c[2], pos[b, 0], pos[b, 1], pos[b, 2], out_phi, k)
+
+
+def _spheres_reach(centre: np.ndarray, radius: np.ndarray, x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """(sphere, point) index pairs, sphere-major as ``np.nonzero``, of the points x (G, 3) whose
+    distance to a sphere (centre (l, 3), radius (l,)) is below ``reach``: ‖c − x‖ − r < reach."""
+    out_s, out_p = np.empty(len(centre) * len(x), np.intp), np.empty(len(centre) * len(x), np.intp)
+    k = _spheres_reach_into(centre, radius, np.ascontiguousarray(x, np.float64), float(reach), out_s, out_p)
+    return out_s[:k], out_p[:k]
+
+
+@numba.njit(cache=True)
+def _spheres_reach_into(centre, radius, x, reach, out_s, out_p):
+    k = 0
+    for s in range(centre.shape[0]):
+        for p in range(x.shape[0]):
+            d0, d1, d2 = centre[s, 0] - x[p, 0], centre[s, 1] - x[p, 1], centre[s, 2] - x[p, 2]
+            if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) - radius[s] < reach:
+                out_s[k], out_p[k] = s, p
+                k += 1
+    return k
+
+
+def object_surface_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
+                        track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, reach: float) -> Rows:
+    """The deepest of each cluster of the object's surface points (``ChannelTrack.surface_guards``)
+    against every link of ``links`` it comes within ``reach`` of, from the link's distance grid
+    (arguments as ``object_guard_rows``).
+
+    Where the object's flat face meets a hollow of a link (a wrist's inner side, a palm) neither
+    the link's vertices nor the object's hull guards are the deepest point: a face point is. One
+    row per cluster and link, at its deepest point, keeps every point of the cluster out at the
+    iterate: one row per 4 cm² of touching face instead of 16. Rows as ``object_guard_rows``.
+    """
+    sg = track.surface_guards
+    if sg is None or len(links) == 0:
+        return Rows.empty()
+    cl, grids = sg.clusters, problem.link_grids
+    pair, pair_cl = sg.clusters_near((centre_w[links] - pos_c) @ rot_c, problem.link_radius[links] + reach)
+    if len(pair_cl) == 0:
+        return Rows.empty()
+    grids = problem.link_grids
+    n = len(pair_cl)
+    value, phi, link = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp)
+    k = _object_surface_rows_into(links[pair], pair_cl, cl.centre, cl.radius, cl.offsets, sg.points,
+                                  kernel_pose(rot_c), kernel_pose(pos_c), fr.rot,
+                                  fr.pos, grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper,
+                                  grids.strides, grids.offset, float(reach), problem.surface_margin, value, phi, link)
+    return Rows(value[:k], np.ones(k), phi[:k], np.full(k, track.body), link[:k])
+
+
+@numba.njit(cache=True)
+def _object_surface_rows_into(link, cluster, centre, radius, offsets, points, rot_c, pos_c, rot, pos, phi, origin,
+                              inv_resolution, upper, strides, offset, reach, surface_margin, out_value, out_phi,
+                              out_link):
+    """The rows of ``object_surface_rows`` (returns their count): per (link, cluster) pair, the
+    cluster's centre in the link's grid with Φ − radius < reach, then its deepest point (the
+    first smallest Φ among the points inside the grid) if closer than ``reach``. Points are
+    posed as ``posed_in_frames`` poses them (the object a body at (``rot_c``, ``pos_c``))."""
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
+    for q in range(cluster.shape[0]):
+        if q + PREFETCH_AHEAD < cluster.shape[0]:
+            p0, p1, p2 = _object_point(centre, cluster[q + PREFETCH_AHEAD], rot_c, pos_c)
+            _prefetch_link_cell(p0, p1, p2, link[q + PREFETCH_AHEAD], rot, pos, phi, origin, inv_resolution, upper,
+                                strides, offset)
+        b, c = link[q], cluster[q]
+        w0, w1, w2 = _object_point(centre, c, rot_c, pos_c)
+        val, _, _, _, inside = _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper,
+                                                   strides, offset)
+        if not (inside and val - radius[c] < reach):
+            continue
+        best_key = np.inf
+        start, end = offsets[c], offsets[c + 1]
+        for v in range(start, end):
+            if v + PREFETCH_AHEAD < end:
+                p0, p1, p2 = _object_point(points, v + PREFETCH_AHEAD, rot_c, pos_c)
+                _prefetch_link_cell(p0, p1, p2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset)
+            p0, p1, p2 = _object_point(points, v, rot_c, pos_c)
+            d, g0, g1, g2, inside = _link_grid_distance(p0, p1, p2, b, rot, pos, phi, origin, inv_resolution, upper,
+                                                        strides, offset)
+            key = d if inside else np.inf
+            if v == start or key < best_key:
+                best_key, best = key, (d, g0, g1, g2, p0, p1, p2)
+        d, g0, g1, g2, p0, p1, p2 = best
+        if d < reach:
+            _object_link_row(d, g0, g1, g2, p0, p1, p2, b, rot, pos, pos_c, surface_margin, out_value, out_phi,
+                             out_link, k)
+            k += 1
+    return k
+
+
+@inlined
+def _object_point(points, i, rot_c, pos_c):
+    """Object-frame point i in the world, as ``posed_in_frames`` poses it."""
+    return (rot_c[0, 0] * points[i, 0] + rot_c[0, 1] * points[i, 1] + rot_c[0, 2] * points[i, 2] + pos_c[0],
+            rot_c[1, 0] * points[i, 0] + rot_c[1, 1] * points[i, 1] + rot_c[1, 2] * points[i, 2] + pos_c[1],
+            rot_c[2, 0] * points[i, 0] + rot_c[2, 1] * points[i, 1] + rot_c[2, 2] * points[i, 2] + pos_c[2])
+
+
+@inlined
+def _prefetch_link_cell(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
+    """Prefetch the cell of link b's grid that ``_link_grid_distance`` will read for world point w."""
+    x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
+    r, _, _, _, _ = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
+    _prefetch_phi_cell(phi, r, strides[b, 0], strides[b, 1])
+
+
+def self_mesh_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, reach: float) -> Rows:
+    """Self-collision of the links' visual meshes: every vertex of link a against the distance
+    grid of link b (its frame), for the pairs of ``Problem.self_pairs`` whose bounding spheres
+    come within ``reach``, both ways; rows d − (m_a + m_b) ≥ 0 with both links moving, where m
+    is each link's surface margin (so that Unitree's original shells do not overlap either).
+    Vertices are tested by clusters first (``retarget.solver.probes.PointClusters``): only clusters
+    whose centre, less their radius, is within ``reach`` of b are posed vertex by vertex.
+
+    The capsules (``self_collision_rows``) keep limbs apart coarsely; these rows are what the
+    evaluation measures (vertices of one mesh inside another)."""
+    pairs = problem.self_pairs
+    gap = (np.linalg.norm(centre_w[pairs[:, 0]] - centre_w[pairs[:, 1]], axis=1)
+           - problem.link_radius[pairs[:, 0]] - problem.link_radius[pairs[:, 1]])
+    close = pairs[gap < reach]
+    if len(close) == 0:
+        return Rows.empty()
+    ordered = np.ascontiguousarray(np.concatenate([close, close[:, ::-1]]), np.intp)
+    clusters, grids, vg = problem.self_clusters, problem.link_grids, problem.self_points
+    grid = (grids.phi.ravel(), grids.origin, grids.inv_resolution, grids.upper, grids.strides, grids.offset)
+    # first the clusters within reach, then their vertices: a cluster or vertex outside b's grid is
+    # dropped before its cell is read, and the outputs are sized by the vertices that can matter
+    first = clusters.body_offsets[ordered[:, 0]]
+    bound = int(np.sum(clusters.body_offsets[ordered[:, 0] + 1] - first))
+    pair, cluster = np.empty(bound, np.intp), np.empty(bound, np.intp)
+    n = _self_mesh_clusters(ordered, clusters.centre, clusters.radius, clusters.body_offsets, fr.rot, fr.pos,
+                            float(reach), *grid, grids.box_centre, grids.box_radius, pair, cluster)
+    pair, cluster = pair[:n], cluster[:n]
+    bound = int(np.sum(clusters.offsets[cluster + 1] - clusters.offsets[cluster]))
+    link_a, link_b = np.empty(bound, np.intp), np.empty(bound, np.intp)
+    value, phi = np.empty(bound), np.empty((bound, 12))
+    k = _self_mesh_points(ordered, pair, cluster, clusters.offsets, vg.points, fr.rot, fr.pos, float(reach), *grid,
+                          problem.surface_margin, link_a, link_b, value, phi)
+    return Rows(value[:k], np.ones(k), phi[:k], link_a[:k], link_b[:k])
+
+
+@numba.njit(cache=True)
+def _self_mesh_clusters(ordered, centre, radius, body_offsets, rot, pos, reach, phi, origin, inv_resolution, upper,
+                        strides, offset, box_centre, box_radius, out_pair, out_cluster):
+    """The clusters of ``self_mesh_rows`` whose vertices are to be tested: per ordered pair
+    (a, b) (index p), each cluster c of a whose centre lies in b's grid with Φ − radius < reach,
+    as (p, c) in that order; returns their count. Each link's cluster centres are posed in the
+    world once; a centre farther from b's grid box centre than its half diagonal (``box_centre``,
+    ``box_radius``, grid frame), plus a micrometre for rounding, lies outside b's grid: it is
+    dropped without being posed into b's frame."""
+    world = np.empty((centre.shape[0], 3))
+    posed = np.zeros(body_offsets.shape[0] - 1, np.bool_)
+    k = 0
+    for p in range(ordered.shape[0]):
+        a, b = ordered[p, 0], ordered[p, 1]
+        if not posed[a]:
+            for c in range(body_offsets[a], body_offsets[a + 1]):
+                world[c, 0], world[c, 1], world[c, 2] = _posed_point(centre, c, a, rot, pos)
+            posed[a] = True
+        g0, g1, g2 = _posed_point(box_centre, b, b, rot, pos)
+        reach_sq = (box_radius[b] + 1e-6) ** 2
+        inv = inv_resolution[b]
+        o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
+        up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
+        sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
+        for c in range(body_offsets[a], body_offsets[a + 1]):
+            e0, e1, e2 = world[c, 0] - g0, world[c, 1] - g1, world[c, 2] - g2
+            if e0 * e0 + e1 * e1 + e2 * e2 > reach_sq:
+                continue
+            x0, x1, x2 = _in_frame(world[c, 0], world[c, 1], world[c, 2], b, rot, pos)
+            inside, val, _, _, _ = _phi_at(x0, x1, x2, phi, offset[b], o0, o1, o2, inv, up0, up1, up2, sx, sy, sz)
+            if inside and val - radius[c] < reach:
+                out_pair[k], out_cluster[k] = p, c
+                k += 1
+    return k
+
+
+@numba.njit(cache=True)
+def _self_mesh_points(ordered, pair, cluster, offsets, points, rot, pos, reach, phi, origin, inv_resolution, upper,
+                      strides, offset, surface_margin, out_a, out_b, out_value, out_phi):
+    """The rows of ``self_mesh_rows``: for each (pair p = (a, b), cluster c of a) of
+    ``_self_mesh_clusters``, each vertex x of c in b's grid with Φ < reach, as the row
+    Φ − m_a − m_b with the factors φ of ``twist_factors`` for the world gradient R_b ∇Φ; returns
+    the count. Point by point the arithmetic of ``posed_in_frames``, ``GridStack.distance`` and
+    ``twist_factors``, without their intermediate arrays. R_b ∇Φ is summed as numpy's einsum
+    sums it on our builds ((x + z) + y), so that references did not move by a bit."""
+    k = np.int64(0)  # not a literal 0: the callees it is passed to would compile twice
+    for q in range(pair.shape[0]):
+        a, b = ordered[pair[q], 0], ordered[pair[q], 1]
+        inv = inv_resolution[b]
+        o0, o1, o2 = origin[b, 0], origin[b, 1], origin[b, 2]
+        up0, up1, up2 = upper[b, 0], upper[b, 1], upper[b, 2]
+        sx, sy, sz = strides[b, 0], strides[b, 1], strides[b, 2]
+        c = cluster[q]
+        end = offsets[c + 1]
+        for v in range(offsets[c], end):
+            if v + PREFETCH_AHEAD < end:
+                _prefetch_point_cell(points, v + PREFETCH_AHEAD, a, b, rot, pos, phi, offset[b], o0, o1, o2, inv,
+                                     up0, up1, up2, sx, sy, sz)
+            inside, val, g0, g1, g2, w0, w1, w2 = _phi_in_grid(points, v, a, b, rot, pos, phi, offset[b], o0, o1,
+                                                               o2, inv, up0, up1, up2, sx, sy, sz)
+            if not (inside and val < reach):
+                continue
+            g0, g1, g2 = g0 * inv, g1 * inv, g2 * inv
+            a0 = (rot[b, 0, 0] * g0 + rot[b, 0, 2] * g2) + rot[b, 0, 1] * g1
+            a1 = (rot[b, 1, 0] * g0 + rot[b, 1, 2] * g2) + rot[b, 1, 1] * g1
+            a2 = (rot[b, 2, 0] * g0 + rot[b, 2, 2] * g2) + rot[b, 2, 1] * g1
+            out_a[k], out_b[k] = a, b
+            out_value[k] = val - surface_margin[a] - surface_margin[b]
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[a, 0], pos[a, 1], pos[a, 2], pos[b, 0], pos[b, 1], pos[b, 2],
+                       out_phi, k)
+            k += 1
+    return k
+
+
+@inlined
+def _phi_in_grid(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """Point v of body a posed into body b's grid (origin o, 1/resolution inv, upper bounds up,
+    strides s, first row row0): whether it lies inside, then Φ and its partials per cell width
+    (unread when outside) and its world position."""
+    w0, w1, w2, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    inside, val, g0, g1, g2 = _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz)
+    return inside, val, g0, g1, g2, w0, w1, w2
+
+
+@inlined
+def _phi_at(x0, x1, x2, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """A point x in a grid's frame (grid as ``_phi_in_grid``): whether it lies inside, then Φ and
+    its partials per cell width (unread when outside)."""
+    u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+    if not (0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2):
+        return False, 0.0, 0.0, 0.0, 0.0
+    ix, fx = _cell_inside(u0, up0)
+    iy, fy = _cell_inside(u1, up1)
+    iz, fz = _cell_inside(u2, up2)
+    val, g0, g1, g2 = _trilinear_phi(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy, fx, fy, fz)
+    return True, val, g0, g1, g2
+
+
+@inlined
+def _prefetch_point_cell(points, v, a, b, rot, pos, phi, row0, o0, o1, o2, inv, up0, up1, up2, sx, sy, sz):
+    """Prefetch the cell of b's grid that ``_phi_in_grid`` will read for point v (same arguments)."""
+    _, _, _, x0, x1, x2 = _pose_in_frame(points, v, a, b, rot, pos)
+    u0, u1, u2 = (x0 - o0) * inv, (x1 - o1) * inv, (x2 - o2) * inv
+    if 0.0 <= u0 <= up0 and 0.0 <= u1 <= up1 and 0.0 <= u2 <= up2:
+        ix, _ = _cell_inside(u0, up0)
+        iy, _ = _cell_inside(u1, up1)
+        iz, _ = _cell_inside(u2, up2)
+        _prefetch_phi_cell(phi, row0 + ix * sx + iy * sy + iz * sz, sx, sy)
+
+
+#: The root link (pelvis): its origin is the floating base's.
+ROOT_LINK = robot.BODY_NAMES.index(robot.ROOT_BODY)
+
+
+def base_step_rows(problem: Problem, state: SolverState, t: int, fr: LinkFrames) -> Rows:
+    """Constraint rows b ∓ (p − p̂) ≥ 0 per world axis (``SolverConfig.base_step_m``): the base
+    origin p within b of p̂ = the previous frame's base moved by the pelvis style target's
+    displacement (the person's pelvis, its height scaled to the G1's). None on the first frame."""
+    if state.prev is None or t == 0:
+        return Rows.empty()
+    b = problem.solver.base_step_m
+    pelvis = ROOT_LINK
+    # the pelvis style target's displacement: the person's, its height scaled to the G1's
+    slot = int(np.flatnonzero(problem.style.links == pelvis)[0])
+    target = state.prev[0][:3] + problem.style.pos_w[t, slot] - problem.style.pos_w[t - 1, slot]
+    dev = fr.pos[pelvis] - target
+    phi = np.zeros((6, 12))
+    phi[:3, :3] = -np.eye(3)
+    phi[3:, :3] = np.eye(3)
+    return Rows(np.concatenate([b - dev, b + dev]), np.ones(6), phi, np.full(6, pelvis, np.intp),
+                np.full(6, FIXED, np.intp))
+
+
+def self_collision_rows(problem: Problem, fr: LinkFrames, margin: float) -> Rows:
+    """Capsule pairs closer than ``margin``: d + n·(ẋ_a − ẋ_b) rows (n from b to a)."""
+    sc = problem.kin.self_collision.distances(fr, within=margin)
+    close = np.flatnonzero(sc.dist < margin)
+    phi = np.empty((len(close), 12))
+    _capsule_rows(sc.point_a, sc.point_b, sc.normal, sc.link_a, sc.link_b, fr.pos, close, phi)
+    return Rows(sc.dist[close], np.ones(len(close)), phi, sc.link_a[close], sc.link_b[close])
+
+
+@numba.njit(cache=True)
+def _capsule_rows(point_a, point_b, normal, link_a, link_b, pos, close, out):
+    """φ of the capsule pairs ``close``: the distance's rate is n·(ẋ_a − ẋ_b) at the surface
+    points (the radii lie along n), φ = (n, (p_a − o_a) × n, −n, −((p_b − o_b) × n)): the
+    second cross product negated after it is computed, as the array form had it."""
+    for r in range(close.shape[0]):
+        k = close[r]
+        n0, n1, n2 = normal[k, 0], normal[k, 1], normal[k, 2]
+        a, b = link_a[k], link_b[k]
+        u0, u1, u2 = point_a[k, 0] - pos[a, 0], point_a[k, 1] - pos[a, 1], point_a[k, 2] - pos[a, 2]
+        v0, v1, v2 = point_b[k, 0] - pos[b, 0], point_b[k, 1] - pos[b, 1], point_b[k, 2] - pos[b, 2]
+        out[r, 0], out[r, 1], out[r, 2] = n0, n1, n2
+        out[r, 3], out[r, 4], out[r, 5] = u1 * n2 - u2 * n1, u2 * n0 - u0 * n2, u0 * n1 - u1 * n0
+        out[r, 6], out[r, 7], out[r, 8] = -n0, -n1, -n2
+        out[r, 9], out[r, 10], out[r, 11] = -(v1 * n2 - v2 * n1), -(v2 * n0 - v0 * n2), -(v0 * n1 - v1 * n0)
+

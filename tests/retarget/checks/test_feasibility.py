@@ -1,0 +1,254 @@
+"""Dynamic feasibility of references (retarget.checks.feasibility) on generated G1 motions whose
+answers are known: a standing robot, a hover, a ballistic flight, an elbow faster than its
+motor, a sliding stance, a teleport, a robot sunk into the floor, a hand on the floor, and
+torques checked against MuJoCo's inverse dynamics."""
+
+from __future__ import annotations
+
+import json
+
+import mujoco
+import numpy as np
+import pytest
+from conftest import lowest_collision_reach
+
+from otr_gym import robot
+from otr_gym.reference import Reference
+from otr_gym.rotations import quat_from_euler_xyz
+from retarget.checks import verify
+from retarget.checks.feasibility import (
+    GRAVITY,
+    FeasibilityCfg,
+    check_feasibility,
+    format_report,
+)
+
+FPS = 50.0
+ELBOW = robot.JOINT_NAMES.index("left_elbow_joint")
+
+
+def _clip(frames: int = 50) -> np.ndarray:
+    """(frames, 36) qpos of the default standing pose, feet flat on the floor."""
+    return np.tile(robot.default_qpos(), (frames, 1))
+
+
+def _ref(qpos: np.ndarray) -> Reference:
+    return Reference.from_qpos(qpos, FPS)
+
+
+@pytest.fixture(scope="module")
+def standing():
+    return check_feasibility(_ref(_clip()))
+
+
+def test_standing_still_is_feasible_and_the_feet_carry_the_weight(standing):
+    r = standing
+    # the floor carries the whole weight, shared by the feet; nothing is left to the pelvis
+    np.testing.assert_allclose(r.foot_force_w[:, :, 2].sum(axis=1), r.weight_n, rtol=1e-6)
+    np.testing.assert_allclose(r.foot_force_w[:, 0, 2], r.foot_force_w[:, 1, 2], rtol=0.02)
+    assert r.unsupported_fraction.max() < 1e-6
+    assert r.weight_n == pytest.approx(33.34 * GRAVITY, rel=1e-3)  # the G1 MJCF's mass
+    assert r.stance.all() and not r.flight.any()
+    assert np.nanmax(r.slide_speed_mps) < 1e-9
+    assert r.torque_ratio.max() < 0.25 and r.joint_speed_ratio.max() < 1e-9
+    assert r.intervals == [] and r.hardest() == []
+    assert r.penetration_m.max() < 1e-3  # the soles on the floor, not in it
+    assert format_report(r).endswith("no frame reaches a limit")
+
+
+def test_a_hover_is_a_flight_with_the_whole_weight_unsupported():
+    qpos = _clip(40)
+    qpos[:, 2] += 0.5
+    r = check_feasibility(_ref(qpos))
+    assert r.flight_phases() == [(0, 39)]
+    assert r.summary()["flight"]["durations_s"] == [pytest.approx(40 / FPS)]
+    assert r.summary()["flight"]["unsupported_mean_fraction"] == [pytest.approx(1.0)]
+    assert "not ballistic in the air" in format_report(r) and "100% of weight" in format_report(r)
+    # at rest in the air: the base wrench is exactly the weight, and no foot can supply it
+    np.testing.assert_allclose(r.unsupported_fraction, 1.0, rtol=1e-9)
+    assert r.foot_force_w.max() == 0.0
+    assert all("unsupported" in h.reasons and "flight" in h.reasons for h in r.hardest())
+
+
+def test_a_ballistic_flight_needs_no_support():
+    t = np.arange(30) / FPS
+    qpos = _clip(30)
+    qpos[:, 2] += 0.5 + 2.5 * t - 0.5 * GRAVITY * t**2  # thrown up at 2.5 m/s, 0.3 m up or more throughout
+    qpos[:, 0] += 1.5 * t
+    r = check_feasibility(_ref(qpos))
+    assert r.flight.all()
+    # free fall of a rigid pose: the centre of mass accelerates at g, no external force needed
+    assert r.unsupported_fraction.max() < 0.01
+    assert r.summary()["flight"]["unsupported_mean_fraction"][0] < 0.01
+    assert r.torque_ratio.max() < 0.01
+
+
+def test_an_elbow_faster_than_its_motor_is_named_with_its_speed_ratio():
+    qpos = _clip()
+    # 40 rad/s for three frames (0.8 rad per 1/50 s), the 5020's limit is 37 rad/s
+    start = robot.JOINT_LOWER[ELBOW] + 0.05
+    ramp = start + 0.8 * np.clip(np.arange(50) - 20, 0, 3)
+    qpos[:, 7 + ELBOW] = ramp
+    r = check_feasibility(_ref(qpos))
+    summary = r.summary()["joint_speed"]
+    assert summary["joint"] == "left_elbow_joint"
+    assert summary["peak_ratio"] == pytest.approx(40.0 / robot.VELOCITY_LIMIT[ELBOW], rel=1e-9)
+    over = np.flatnonzero(r.joint_speed_ratio[:, ELBOW] >= 1.0)
+    assert over.tolist() == [21, 22]  # central differences: the two frames inside the ramp
+    assert "left_elbow" in r.reasons(21)["joint speed"] and "left_elbow" in r.reasons(22)["joint speed"]
+    # the ramp's corners (0 → 40 rad/s in one frame) also throw the hand off its path
+    hard = r.hardest()
+    assert 20 <= hard[0].frame <= 23 and hard[0].reasons["limb jump"].startswith("left hand ")
+
+
+def test_a_stance_foot_that_slides_is_measured_and_flagged():
+    qpos = _clip()
+    qpos[:, 0] += 0.1 * np.arange(50) / FPS  # the standing robot glides at 10 cm/s
+    r = check_feasibility(_ref(qpos))
+    np.testing.assert_allclose(r.slide_speed_mps, 0.1, rtol=1e-9)
+    assert r.summary()["stance_sliding"]["frames_over"] == 50
+    assert "sliding" in r.hardest()[0].reasons
+
+
+def test_a_teleport_shows_as_a_pelvis_jump_on_both_sides():
+    qpos = _clip()
+    qpos[25:, 1] += 0.10  # 10 cm sideways in one frame
+    r = check_feasibility(_ref(qpos))
+    np.testing.assert_allclose(r.root_jump_m[[24, 25]], 0.05, rtol=1e-9)
+    assert np.delete(r.root_jump_m, [24, 25]).max() < 1e-12
+    hard = r.hardest()
+    assert hard[0].frame in (24, 25) and hard[0].start <= 24 and hard[0].stop >= 25
+    assert "jump" in hard[0].reasons
+
+
+def test_a_foot_that_snaps_for_one_frame_is_a_limb_jump_not_a_pelvis_jump():
+    """The left knee bent 0.6 rad for frame 25 only: the pelvis stays, the left foot leaves the
+    line of its neighbours by its whole excursion there and by half of it on either side."""
+    qpos = _clip()
+    qpos[25, 7 + robot.JOINT_NAMES.index("left_knee_joint")] += 0.6
+    r = check_feasibility(_ref(qpos))
+    foot = r.limb_jump_m[:, 0]
+    ref = _ref(qpos)
+    i = ref.body_index(["left_ankle_roll_link"])[0]
+    excursion = np.linalg.norm(ref.body_pos_w[25, i] - ref.body_pos_w[24, i])
+    assert excursion > 0.1  # a real snap: ~16 cm
+    assert foot[25] == pytest.approx(excursion, rel=1e-6)
+    np.testing.assert_allclose(foot[[24, 26]], excursion / 2, rtol=1e-6)
+    assert np.delete(foot, [24, 25, 26]).max() < 1e-9 and r.limb_jump_m[:, 1:].max() < 1e-9
+    assert r.root_jump_m.max() < 1e-12
+    assert r.reasons(25)["limb jump"].startswith("left foot ") and "jump" not in r.reasons(25)
+    assert r.hardest()[0].frame in (24, 25, 26)  # the foot also slides there (it stays near the floor)
+    summary = r.summary()["limb_jump"]
+    assert summary["limb"] == "left foot" and summary["frames_over"] == 3
+    assert "limb jumps (feet, hands)" in format_report(r)
+
+
+def test_a_robot_sunk_into_the_floor_is_flagged_by_its_soles_depth():
+    """Sunk 5 and 8 cm (the standing soles sit 3 mm above the floor): the depths differ by the
+    3 cm, the soles are what is deepest, and every frame is flagged."""
+    depth = {}
+    for sink in (0.05, 0.08):
+        qpos = _clip(20)
+        qpos[:, 2] -= sink
+        depth[sink] = r = check_feasibility(_ref(qpos))
+        assert set(r.penetration_link) <= set(robot.FEET)
+        assert r.summary()["penetration"]["frames_over"] == 20
+    np.testing.assert_allclose(depth[0.08].penetration_m - depth[0.05].penetration_m, 0.03, atol=1e-9)
+    r = depth[0.05]
+    assert 0.045 < r.penetration_m[0] <= 0.05
+    cm = f"{100 * r.penetration_m[10]:.1f} cm"
+    assert r.reasons(10)["penetration"].endswith(f"{cm} into the ground")
+    assert f"collision geometry in the ground deepest {cm}" in format_report(r)
+
+
+def test_a_robot_lying_face_down_in_the_floor_names_its_deepest_link():
+    """Pitched 120° forward and lowered until MuJoCo puts its lowest collision geometry 4 cm below
+    z = 0: the check finds the same depth at the same link (a capsule's lowest point, not a sole)."""
+    pose = robot.default_qpos()
+    pose[3:7] = quat_from_euler_xyz(0.0, np.deg2rad(120.0), 0.0)
+    lowest, body = lowest_collision_reach(pose)
+    pose[2] -= lowest + 0.04
+    assert body == "torso_link"  # 8 cm lower than any other link's geometry in this pose
+    r = check_feasibility(_ref(np.tile(pose, (10, 1))))
+    np.testing.assert_allclose(r.penetration_m, 0.04, atol=2e-3)
+    assert set(r.penetration_link) == {body}
+
+
+def test_a_hand_carries_weight_on_its_boxes_not_on_the_retargeters_capsule():
+    """Pitched face down, the left arm reaching for the floor with the palm turned to it: the
+    hand's boxes (what the simulation collides) reach 1.9 cm lower than the retargeter's coarse
+    hand capsule (contype 0) and lower than every other link. With the boxes 1 cm above the floor
+    the hand is on the ground and pushes (the capsule is then 2.9 cm up, beyond the 2-cm contact
+    height: it alone would not count); raised to 2.5 cm, nothing touches."""
+    from otr_gym.robot_geometry import collision_capsules
+
+    pose = robot.default_qpos()
+    pose[3:7] = quat_from_euler_xyz(0.0, np.deg2rad(90.0), 0.0)
+    for joint, angle in (("left_shoulder_pitch", -1.2), ("left_elbow", 0.6), ("left_wrist_roll", 1.5),
+                         ("left_wrist_pitch", -1.0)):
+        pose[7 + robot.JOINT_NAMES.index(f"{joint}_joint")] = angle
+    lowest, body = lowest_collision_reach(pose)
+    assert body == "left_wrist_yaw_link"
+    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
+    data = mujoco.MjData(model)
+    (capsule,) = [c for c in collision_capsules() if c.name == "left_hand_collision"]
+    for height, on_ground in ((0.01, True), (0.025, False)):
+        qpos = pose.copy()
+        qpos[2] += height - lowest
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        b = model.body(capsule.body).id
+        capsule_low = min((data.xpos[b] + data.xmat[b].reshape(3, 3) @ p)[2] for p in (capsule.p0, capsule.p1))
+        assert capsule_low - capsule.radius > FeasibilityCfg().contact_height_m
+        r = check_feasibility(_ref(np.tile(qpos, (10, 1))))
+        if on_ground:
+            assert r.other_support.all()
+            assert (r.other_force_w[:, 2] > 0.05 * r.weight_n).all()
+        else:
+            assert not r.other_support.any() and not r.other_force_w.any()
+
+
+def test_torques_match_mujoco_inverse_dynamics_of_the_same_motion():
+    """Hovering (no contact) with every joint on a parabola: central differences are exact,
+    so the joint torques must equal MuJoCo's ``mj_inverse`` (armature included) and the
+    unsupported force the norm of its free-joint force."""
+    frames = 40
+    tau = np.arange(frames) / (frames - 1) - 0.5  # normalised time in [-0.5, 0.5]
+    qpos = _clip(frames)
+    qpos[:, 2] += 0.6
+    mid = 0.5 * (robot.JOINT_LOWER + robot.JOINT_UPPER)
+    half = 0.45 * (robot.JOINT_UPPER - robot.JOINT_LOWER)
+    rng = np.random.default_rng(0)
+    c1, c2 = rng.uniform(-0.9, 0.9, (2, robot.NUM_JOINTS))  # |c1|/2 + |c2|/4 < 1: inside the limits
+    qpos[:, 7:] = mid + half * (c1 * tau[:, None] + c2 * tau[:, None] ** 2)
+    r = check_feasibility(_ref(qpos), FeasibilityCfg(lowpass_hz=None))
+    assert np.abs(r.torque_nm).max() > 5.0  # not a trivially small comparison
+
+    model = mujoco.MjModel.from_xml_path(str(robot.G1_MJCF))
+    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT  # random poses may touch themselves
+    data = mujoco.MjData(model)
+    for f in (5, 20, 34):
+        data.qpos[:] = qpos[f]
+        data.qvel[:] = 0.0
+        data.qvel[6:] = (qpos[f + 1, 7:] - qpos[f - 1, 7:]) * FPS / 2
+        data.qacc[:] = 0.0
+        data.qacc[6:] = (qpos[f + 1, 7:] - 2 * qpos[f, 7:] + qpos[f - 1, 7:]) * FPS**2
+        mujoco.mj_inverse(model, data)
+        assert not data.qfrc_constraint.any()
+        np.testing.assert_allclose(r.torque_nm[f], data.qfrc_inverse[6:], atol=1e-6)
+        assert r.unsupported_force_n[f] == pytest.approx(np.linalg.norm(data.qfrc_inverse[:3]), rel=1e-6)
+
+
+def test_verify_prints_the_section_and_writes_picture_and_summary(tmp_path, capsys):
+    qpos = _clip()
+    qpos[25:, 1] += 0.10
+    path = _ref(qpos).save(tmp_path / "teleport.npz")
+    png, js = tmp_path / "feasibility.png", tmp_path / "feasibility.json"
+    assert verify.main([str(path), "--feasibility-png", str(png), "--feasibility-json", str(js)]) == 0
+    out = capsys.readouterr().out
+    assert "dynamic feasibility at 50 fps" in out and "hardest frames" in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    summary = json.loads(js.read_text())
+    assert summary["jump"]["peak_m"] == pytest.approx(0.05)
+    assert summary["hardest"][0]["frame"] in (24, 25)
+    assert summary["penetration"]["peak_m"] < 1e-3 and summary["penetration"]["frames_over"] == 0
