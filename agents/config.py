@@ -1,4 +1,4 @@
-"""Typed PPO training configuration (docs/RL_SPEC.md §7) and its rsl-rl-lib 5.x dictionary.
+"""Typed PPO training configuration (docs/environment.md §7) and its rsl-rl-lib 5.x dictionary.
 
 ``configs/agents/ppo_track.yaml`` lists the same values as the dataclass defaults below; it is
 read by ``load_train_config`` and the resolved configuration is written into every run folder,

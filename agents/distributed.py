@@ -90,7 +90,7 @@ def torchrun_command(gpus: int, argv: list[str]) -> list[str]:
     """The torchrun command that runs ``otr train`` with ``argv`` (``--gpus`` removed) on
     ``gpus`` processes of this host."""
     rest, skip = [], False
-    for i, arg in enumerate(argv):
+    for arg in argv:
         if skip:
             skip = False
             continue

@@ -23,13 +23,14 @@ that fired, or the clip's end.
 ``Reference.subclip``): whether a failure comes from drift carried from the start or from the
 passage itself.
 
-    python -m agents.episode_trace RUN_OR_CHECKPOINT [--reference REF] [--start-frame K] \\
+    otr trace RUN_OR_CHECKPOINT [--reference REF] [--start-frame K] \\
         [--device cpu] [--every 10] [--png trace.png] [--json trace.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -52,6 +53,7 @@ from envs.mdp.metrics import (
     object_position_error_m,
 )
 from otr_gym import robot
+from otr_gym.cli import int_at_least
 from otr_gym.flags import true_intervals
 from otr_gym.io import save_figure, write_json
 
@@ -349,33 +351,36 @@ def plot_trace(trace: EpisodeTrace, out_png: str | Path) -> Path:
     return save_figure(fig, out_png)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr trace``'s arguments."""
     parser.add_argument("run_or_checkpoint", help="run folder (its latest checkpoint) or model_<it>.pt")
     parser.add_argument("--reference", help="clip to trace (default: the run's reference)")
-    parser.add_argument("--start-frame", type=int, default=0,
-                        help="start on this reference frame (the clip cut there; default: 0)")
-    parser.add_argument("--device", default="cpu", help="torch/warp device (default: cpu)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--every", type=int, default=10, help="print every N-th step (default: 10)")
-    parser.add_argument("--png", help="write the per-frame curves here")
-    parser.add_argument("--json", help="write the per-frame values here")
-    args = parser.parse_args(argv)
-    if args.every < 1:
-        parser.error("--every must be >= 1")
-    if args.start_frame < 0:
-        parser.error("--start-frame must be >= 0")
+    parser.add_argument("--start-frame", type=int_at_least(0), default=0,
+                        help="start on this reference frame, the clip cut there (frame index; default: %(default)s)")
+    parser.add_argument("--device", default="cpu", help="torch/warp device (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the env's reset (default: %(default)s)")
+    parser.add_argument("--every", type=int_at_least(1), default=10,
+                        help="print every N-th step (steps; default: %(default)s)")
+    parser.add_argument("--png", help="write the per-frame curves here (PNG)")
+    parser.add_argument("--json", help="write the per-frame values here (JSON)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """``otr trace RUN_OR_CHECKPOINT``: print the episode's rows and summaries; a run, checkpoint or
+    clip that cannot be used (or a start frame beyond the clip): a message naming it, exit code 2."""
     try:
         trace = trace_episode(args.run_or_checkpoint, args.reference, args.device, args.seed, args.start_frame)
-    except ValueError as exc:  # a library given for one clip, a start frame beyond the clip: named, no traceback
-        parser.error(str(exc))
+    except (runs.RunError, ValueError) as exc:  # a library given for one clip, a start frame beyond the clip
+        print(f"otr trace: {exc}", file=sys.stderr)
+        return 2
     print("\n".join(trace.rows(args.every)))
     end = "success" if trace.success else "ended by " + ", ".join(trace.ended_by)
     print(f"{trace.steps} steps, {end} at frame {trace.frame[-1]} of {trace.clip_frames}")
     print("root-relative error per body, mean over the episode (mm): "
           + ", ".join(f"{name} {mm:.1f}" for name, mm in trace.body_means_mm()))
     if trace.ee_height_cm:
-        limit = "" if trace.ee_height_threshold_cm is None else f"; the termination at ±{trace.ee_height_threshold_cm:.0f}"
+        limit = ("" if trace.ee_height_threshold_cm is None
+                 else f"; the termination at ±{trace.ee_height_threshold_cm:.0f}")
         print(f"end effectors' height off their reference at the last step (cm, robot − reference{limit}): "
               + ", ".join(f"{name} {cm:+.1f}" for name, cm in zip(trace.end_effector_names, trace.ee_height_cm[-1],
                                                                   strict=True)))
@@ -383,7 +388,8 @@ def main(argv: list[str] | None = None) -> int:
     if joints:
         print(f"joints farthest from their reference over the last {min(25, trace.steps)} steps "
               "(mean q − q_ref in rad; mean / peak torque as a share of the joint's effort limit): "
-              + ", ".join(f"{name} {rad:+.2f} ({100 * mean:.0f} / {100 * peak:.0f} %)" for name, rad, mean, peak in joints))
+              + ", ".join(f"{name} {rad:+.2f} ({100 * mean:.0f} / {100 * peak:.0f} %)"
+                          for name, rad, mean, peak in joints))
     phases = trace.object_phases()
     if phases:
         print("object error by the reference's robot–object windows (cm, steps, share of the error): "
@@ -401,7 +407,3 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(f"wrote {write_json(args.json, {**asdict(trace), 'steps': trace.steps})}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

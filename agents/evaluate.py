@@ -1,7 +1,7 @@
 """``otr evaluate RUN_OR_CHECKPOINT [--reference REF]``: success rate and MPJPE of a policy
 (and, for OTR-G1-BoxTrack-v0, the object errors).
 
-Protocol (RL_SPEC §5 success, paper Sec. IV-E MPJPE):
+Protocol (docs/environment.md §5 success, paper Sec. IV-E MPJPE):
 
 - env i plays clip i mod C from frame 0, without domain randomisation, observation or reset
   noise (the env's ``evaluation`` mode), and the episode ends with the clip, not a time-out;
@@ -141,7 +141,8 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
         line = (f"iteration {ckpt.iteration:>6}: success {100 * result['success_rate']:5.1f} %  "
                 f"MPJPE {result['mpjpe_mm']:7.1f} mm (heading-aligned {result['mpjpe_heading_aligned_mm']:5.1f})")
         if result.get("object_pos_error_cm") is not None:
-            line += (f"  object {result['object_pos_error_cm']:5.1f} cm (p95 {result['object_pos_error_p95_cm']:5.1f}), "
+            line += (f"  object {result['object_pos_error_cm']:5.1f} cm "
+                     f"(p95 {result['object_pos_error_p95_cm']:5.1f}), "
                      f"{result['object_ori_error_deg']:5.1f} deg")
         line += ended_by_text(result)
         print(f"{line}  ({result['envs']} envs, {result['frames']} frames)")
@@ -154,7 +155,8 @@ def evaluate(run_or_checkpoint: str | Path, reference: str | Path | None = None,
                       "skipped": [{"clip": c.path, "error": c.error} for c in library.skipped]},
         "protocol": {"randomize": randomize, "num_envs": num_envs, "seed": seed, "device": str(torch_device),
                      "start_frame": 0,
-                     "action": "deterministic mean" + (f" + Gaussian noise std {action_noise:g}" if action_noise else ""),
+                     "action": "deterministic mean"
+                               + (f" + Gaussian noise std {action_noise:g}" if action_noise else ""),
                      "mpjpe": "root-relative, 14 bodies, mm",
                      "mpjpe_heading_aligned": "diagnostic: the same after turning the reference by the anchors' "
                                               "yaw difference (heading drift not charged)",
@@ -198,7 +200,8 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--last", action="store_true", help="of a run folder, only the latest checkpoint")
     parser.add_argument("--every", type=int, metavar="N", help="of a run folder, only the checkpoints at multiples "
                         "of N iterations and the latest")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the envs' resets and of --action-noise "
+                        "(default: %(default)s)")
     parser.add_argument("--action-noise", type=float, default=0.0, metavar="STD",
                         help="add zero-mean Gaussian noise of this std to every action (action units, e.g. the "
                              "policy's learned std, to see what its exploration costs; default 0)")

@@ -2,7 +2,7 @@
 
 The graph is rsl-rl's own export module (``MLPModel.as_onnx``): empirical normaliser, MLP and
 the Gaussian mean, one input ``obs`` (batch, D) and one output ``actions`` (batch, 29), opset
-18. The reference is *not* baked in (RL_SPEC preamble): the deployment runner owns the clip and
+18. The reference is *not* baked in (docs/environment.md §8): the deployment runner owns the clip and
 builds the command part of the observation itself, so one policy file serves many clips.
 
 ``metadata_props`` holds one entry per field, each value JSON-encoded (``read_metadata``
@@ -27,7 +27,7 @@ from rsl_rl.modules import EmpiricalNormalization
 from agents import runs
 from agents.policy import TrainedPolicy, load_policy
 
-OPSET = 18  # as rsl-rl's own ONNX export (RL_SPEC §8, MJ column)
+OPSET = 18  # as rsl-rl's own ONNX export (docs/environment.md §8, MJ column)
 PARITY_TOL = 1e-5
 FORMAT = "otr-gym-policy/1"
 

@@ -1,4 +1,4 @@
-"""``python -m agents.failure_bins RUN_OR_CHECKPOINT [--reference REF] [--clip-floor B] [--png P] [--json J]``:
+"""``otr failure-map RUN_OR_CHECKPOINT [--reference REF] [--clip-floor B] [--png P] [--json J]``:
 where in each clip a training run's episodes fail, and where its starts go.
 
 The adaptive start sampler (``envs.mdp.commands``) keeps, per (clip, time bin), an exponential
@@ -15,7 +15,7 @@ so the failures, would respond).
 
 This is the training distribution's view: episodes start where the sampler sends them, with the
 training's randomisation and reset noise. ``otr evaluate`` measures the deterministic episode
-from frame 0; ``agents.episode_trace`` follows one such episode frame by frame.
+from frame 0; ``otr trace`` follows one such episode frame by frame.
 """
 
 from __future__ import annotations
@@ -104,7 +104,8 @@ def load_clip_failures(run_or_checkpoint: str | Path, reference=None,
     ckpt = runs.resolve_checkpoint(run_or_checkpoint)
     state = (runs.load_checkpoint(ckpt).get("infos") or {}).get("training_state", {}).get("env", {})
     if "failure_rate" not in state:
-        raise runs.RunError(f"{ckpt.path}: the checkpoint holds no sampler statistics (training_state.env.failure_rate)")
+        raise runs.RunError(f"{ckpt.path}: the checkpoint holds no sampler statistics "
+                            "(training_state.env.failure_rate)")
     config = runs.run_config(ckpt.run_dir)
     train_cfg = train_config_from_dict(config["train"])
     command = load_env_config(train_cfg.task, overrides=train_cfg.env or None).command
@@ -163,22 +164,28 @@ def plot_failures(clips: list[ClipFailures], out_png: str | Path, title: str = "
     return save_figure(fig, out_png)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m agents.failure_bins", description=__doc__.split("\n\n")[1])
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr failure-map``'s arguments."""
     parser.add_argument("run", help="run folder (its latest checkpoint) or model_<it>.pt")
     parser.add_argument("--reference", nargs="+", help="the library's clips (default: the run's reference)")
-    parser.add_argument("--worst", type=int, default=3, help="bins listed per clip (default: 3)")
+    parser.add_argument("--worst", type=int, default=3, help="number of bins listed per clip (default: %(default)s)")
     parser.add_argument("--clip-floor", type=float,
-                        help="the starts under this command.library_clip_floor instead of the run's (same failures)")
-    parser.add_argument("--png", help="write the per-clip bars here")
-    parser.add_argument("--json", help="write the bins here")
-    args = parser.parse_args(argv)
+                        help="the starts under this command.library_clip_floor (β in [0, 1]: the fraction of clip "
+                        "draws spread evenly over the clips) from the same failures (default: the run's)")
+    parser.add_argument("--png", help="write the per-clip bars here (PNG)")
+    parser.add_argument("--json", help="write the bins here (JSON)")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Print the failure map of ``args.run``; a run, checkpoint or clip that cannot be used: a
+    message naming it, exit code 2."""
     try:
         ckpt, clips, command = load_clip_failures(args.run, args.reference, args.clip_floor)
     except (runs.RunError, InvalidReferenceError, ValueError, OSError) as exc:
-        print(f"agents.failure_bins: {exc}", file=sys.stderr)
+        print(f"otr failure-map: {exc}", file=sys.stderr)
         return 2
-    floor = f"library_clip_floor {command.library_clip_floor:g}" + (" (--clip-floor)" if args.clip_floor is not None else "")
+    floor = (f"library_clip_floor {command.library_clip_floor:g}"
+             + (" (--clip-floor)" if args.clip_floor is not None else ""))
     print(f"{ckpt.path} (iteration {ckpt.iteration}): failures per step (all envs) by clip time; starts under {floor}")
     print(format_failures(clips, args.worst))
     if args.png:
@@ -188,13 +195,9 @@ def main(argv: list[str] | None = None) -> int:
                 "library_clip_floor": command.library_clip_floor,
                 "clips": [{"clip": c.clip, "frames": c.frames, "fps": c.fps, "failures_per_step": c.total,
                            "start_share": c.start_share,
-                           "bins": [{"first_frame": int(f), "last_frame": int(l), "failures_per_step": float(r),
+                           "bins": [{"first_frame": int(f), "last_frame": int(last), "failures_per_step": float(r),
                                      "start_share": float(p)}
-                                    for f, l, r, p in zip(c.first_frame, c.last_frame, c.rate, c.start)]}
+                                    for f, last, r, p in zip(c.first_frame, c.last_frame, c.rate, c.start)]}
                           for c in clips]}
         print(f"wrote {runs.write_json(args.json, data)}")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

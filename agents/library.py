@@ -1,11 +1,13 @@
 """The clip library of a run: what ``--reference`` names, which clips load, which are skipped.
 
 ``--reference`` takes one or more items, each a reference ``.npz``, a folder of them or a
-clip-list file (``.txt``/``.list``, ``otr_gym.reference.list_references``). Every clip is
-loaded and prepared exactly as the environment will (``envs.mdp.motion.prepared_references``:
-tracked bodies present, resampled to the policy rate, long enough). A clip that fails is
-reported by name with the reason and skipped; a library left without clips raises. The run
-records both lists (``config.yaml``: ``reference_info.clips`` / ``reference_info.skipped``).
+clip-list file (``.txt``/``.list``, ``otr_gym.reference.clip_entries``). The lists are read
+once, every clip is loaded once and prepared for the environment's command
+(``envs.mdp.motion.prepared_references``: tracked bodies present, resampled to the policy rate,
+long enough): the library's ``clips`` (``envs.clips.PreparedClips``) go to the environment
+as they are. A clip that fails is reported by name with the reason and skipped; a library left
+without clips raises. The run records both lists (``config.yaml``: ``reference_info.clips`` /
+``reference_info.skipped``).
 
 Clips of one library may differ in length and frame rate: each is resampled to 50 fps at
 load. OTR-G1-BoxTrack-v0 simulates one object set, so its library must share it: clips whose
@@ -23,10 +25,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from envs.config import load_env_config
+from envs.clips import PreparedClips
+from envs.config import CommandCfg, load_env_config
 from envs.mdp.motion import prepared_references
-from envs.terrain import meshes_for_clips, terrain_meshes
-from otr_gym.reference import InvalidReferenceError, Reference, list_references
+from envs.terrain import listed_terrain, meshes_for_clips, terrain_meshes
+from otr_gym.reference import InvalidReferenceError, Reference, clip_entries
 
 #: What a broken clip file can raise while it is read and prepared.
 _LOAD_ERRORS = (InvalidReferenceError, OSError, ValueError, KeyError, zipfile.BadZipFile)
@@ -41,8 +44,13 @@ class SkippedClip:
 @dataclass(frozen=True)
 class ClipLibrary:
     spec: tuple[str, ...]  # the --reference items as given, made absolute
-    references: tuple[Reference, ...]  # clips that load, prepared (50 fps), in library order
+    clips: PreparedClips  # clips that load, prepared for the environment, with their clip-list terrain
     skipped: tuple[SkippedClip, ...]
+
+    @property
+    def references(self) -> tuple[Reference, ...]:
+        """The clips that load, prepared (50 fps), in library order."""
+        return self.clips.references
 
     @property
     def name(self) -> str:
@@ -69,7 +77,7 @@ def with_terrain(env_overrides: dict, library: ClipLibrary, clips: Sequence[str]
     ``clips`` (sources), only the entries that name one of them are kept (evaluating or playing
     part of a library)."""
     terrain = dict(env_overrides.get("terrain") or {})
-    meshes = terrain_meshes(terrain.get("meshes") or {}, library.spec)
+    meshes = terrain_meshes(terrain.get("meshes") or {}, library.clips.listed_meshes)
     if clips is not None:
         meshes = meshes_for_clips(meshes, clips)
     if not meshes and "meshes" not in terrain:
@@ -86,25 +94,31 @@ def reference_spec(reference: str | Path | Sequence[str | Path]) -> tuple[str, .
 
 def load_library(reference: str | Path | Sequence[str | Path], task: str, env_overrides: dict | None = None,
                  report: bool = True) -> ClipLibrary:
-    """Every clip named by ``reference`` prepared for ``task``'s tracked bodies and rate; those
-    that fail are skipped with their reason (printed to stderr with ``report``)."""
+    """``prepare_library`` for the command of ``task``'s env config with ``env_overrides``."""
+    return prepare_library(reference, load_env_config(task, overrides=env_overrides or None).command, report)
+
+
+def prepare_library(reference: str | Path | Sequence[str | Path], command: CommandCfg,
+                    report: bool = True) -> ClipLibrary:
+    """Every clip named by ``reference`` prepared for ``command``'s tracked bodies and rate,
+    each clip list read and each clip loaded once; clips that fail are skipped with their
+    reason (printed to stderr with ``report``)."""
     spec = reference_spec(reference)
-    cmd = load_env_config(task, overrides=env_overrides or None).command
-    files = [f for item in spec for f in list_references(item)]
+    entries = [e for item in spec for e in clip_entries(item)]
     good: list[Reference] = []
     skipped: list[SkippedClip] = []
-    for path in files:
+    for entry in entries:
         try:
-            good.extend(prepared_references(path, cmd.tracked_bodies, cmd.fps, cmd.min_clip_frames))
+            good.extend(prepared_references(entry.path, command.tracked_bodies, command.fps, command.min_clip_frames))
         except _LOAD_ERRORS as exc:
-            message = str(exc) if str(path) in str(exc) else f"{path}: {exc}"
-            skipped.append(SkippedClip(str(path), message))
+            message = str(exc) if str(entry.path) in str(exc) else f"{entry.path}: {exc}"
+            skipped.append(SkippedClip(str(entry.path), message))
     if report:
         for s in skipped:
             print(f"skipped clip: {s.error}", file=sys.stderr)
     if not good:
         raise InvalidReferenceError(f"no clip of {', '.join(spec)} could be loaded ({len(skipped)} skipped)")
-    return ClipLibrary(spec, tuple(good), tuple(skipped))
+    return ClipLibrary(spec, PreparedClips.of(good, listed_terrain(entries), command), tuple(skipped))
 
 
 def clip_labels(sources: Sequence[str]) -> list[str]:

@@ -73,9 +73,9 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference", nargs="+", metavar="REF", help="reference .npz files, folders or clip lists "
                         "(default: the run's own library)")
     parser.add_argument("--clip", help="which clip of the library to play, by label (default: the first)")
-    parser.add_argument("--seconds", type=float, help="stop after this long (default: the whole clip)")
-    parser.add_argument("--width", type=int, default=640)
-    parser.add_argument("--height", type=int, default=480)
+    parser.add_argument("--seconds", type=float, help="stop after this long (s; default: the whole clip)")
+    parser.add_argument("--width", type=int, default=640, help="video width (pixels; default: %(default)s)")
+    parser.add_argument("--height", type=int, default=480, help="video height (pixels; default: %(default)s)")
 
 
 def main(args: argparse.Namespace) -> int:

@@ -5,6 +5,8 @@ Written atomically; matplotlib's Agg backend, so no display is needed.
 
 from __future__ import annotations
 
+import argparse
+import sys
 from pathlib import Path
 
 import matplotlib
@@ -250,38 +252,39 @@ def training_summary(run_dir: str | Path) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-
-    parser = argparse.ArgumentParser(prog="python -m agents.plots",
-                                     description="training curves (PNG) and summary (JSON) of a run; with several "
-                                     "runs, their curves side by side against learning time or iteration")
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr plot``'s arguments."""
     parser.add_argument("run", nargs="+", help="run folder(s)")
     parser.add_argument("--png", required=True, help="output PNG of the training curves")
     parser.add_argument("--labels", nargs="+", help="with several runs: their legend labels (default: folder names)")
     parser.add_argument("--x", choices=RUN_AXES, default="minutes",
-                        help="with several runs: draw against learning time (default) or PPO iteration")
+                        help="with several runs: draw against learning time (minutes) or PPO iteration "
+                        "(default: %(default)s)")
     parser.add_argument("--json", help="output JSON summary (iterations, median FPS, last values); one run only")
     parser.add_argument("--clips-png", help="output PNG of the per-clip curves (success, MPJPE, segment length, "
                         "start probability); one run only")
-    args = parser.parse_args(argv)
-    if len(args.run) > 1 or args.labels:
-        if args.json or args.clips_png:
-            parser.error("--json and --clips-png take one run")
-        try:
-            print(f"wrote {plot_runs(args.run, args.png, args.labels, args.x)}")
-        except ValueError as e:
-            parser.error(str(e))
-        return 0
-    run = args.run[0]
-    print(f"wrote {plot_training(run, args.png)}")
-    if args.clips_png:
-        print(f"wrote {plot_clip_curves(run, args.clips_png)}")
-    if args.json:
-        summary = training_summary(run)
-        print(f"wrote {runs.write_json(args.json, summary)}: {summary['iterations']} iterations, "
-              f"median {summary['median_fps']} env steps/s")
-    return 0
 
-if __name__ == "__main__":
-    raise SystemExit(main())
+
+def main(args: argparse.Namespace) -> int:
+    """``otr plot RUN… --png PNG``: write the figures; a run that cannot be read, options that do not
+    fit the runs given, or runs that cannot be compared: a message naming the problem, exit code 2."""
+    several = len(args.run) > 1 or args.labels
+    if several and (args.json or args.clips_png):
+        print("otr plot: --json and --clips-png take one run", file=sys.stderr)
+        return 2
+    try:
+        if several:
+            print(f"wrote {plot_runs(args.run, args.png, args.labels, args.x)}")
+            return 0
+        run = args.run[0]
+        print(f"wrote {plot_training(run, args.png)}")
+        if args.clips_png:
+            print(f"wrote {plot_clip_curves(run, args.clips_png)}")
+        if args.json:
+            summary = training_summary(run)
+            print(f"wrote {runs.write_json(args.json, summary)}: {summary['iterations']} iterations, "
+                  f"median {summary['median_fps']} env steps/s")
+    except (runs.RunError, ValueError) as exc:
+        print(f"otr plot: {exc}", file=sys.stderr)
+        return 2
+    return 0

@@ -14,10 +14,10 @@ from a footstep plan, not from joint sinusoids, so stance feet do not slide:
 5. arms swing opposite to the legs; waist and wrists stay at the default pose.
 
 The sway keeps both feet on the ground, so an open-loop joint-target player (the deployment's
-"reference policy", ``agents/deploy/reference_policy.py``) can follow it with stiff gains; the
+"reference policy", ``otr reference-policy``) can follow it with stiff gains; the
 walk needs a trained, closed-loop policy.
 
-``python -m agents.procedural walk out.npz`` writes a walk (see ``--help``).
+``otr procedural walk out.npz`` writes a walk (see ``otr procedural --help``).
 """
 
 from __future__ import annotations
@@ -38,7 +38,11 @@ _LEGS = {  # foot body -> its 6 joint columns in G1 order (= qvel index - 6)
 }
 
 
-def standing_reference(duration_s: float = 2.0, fps: float = 50.0) -> Reference:
+#: How long a standing clip holds the pose unless told otherwise (s).
+STAND_S = 2.0
+
+
+def standing_reference(duration_s: float = STAND_S, fps: float = 50.0) -> Reference:
     """The default ("knees bent") pose held still, feet on the ground."""
     frames = int(round(duration_s * fps)) + 1
     qpos = np.tile(robot.default_qpos(), (frames, 1))
@@ -201,26 +205,29 @@ def _solve_legs(qpos: np.ndarray, feet_xyz: np.ndarray, iterations: int = 50, da
         q_prev = q[7:]
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m agents.procedural", description=__doc__.split("\n")[0])
-    parser.add_argument("motion", choices=("walk", "stand", "sway"))
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr procedural``'s arguments."""
+    parser.add_argument("motion", choices=("walk", "stand", "sway"),
+                        help="walk: a straight walk along +x with planted feet; stand: the default pose held; "
+                        "sway: squats, side sway, waist twist and arm waves over planted feet")
     parser.add_argument("out", help="output reference .npz (written atomically)")
-    parser.add_argument("--steps", type=int, default=WalkSpec.steps, help="walk: number of footsteps")
-    parser.add_argument("--step-length", type=float, default=WalkSpec.step_length_m, help="walk: m per step")
+    parser.add_argument("--steps", type=int, default=WalkSpec.steps,
+                        help="walk: number of footsteps (default: %(default)s)")
+    parser.add_argument("--step-length", type=float, default=WalkSpec.step_length_m,
+                        help="walk: foot-to-foot advance per step (m; default: %(default)s)")
     parser.add_argument("--duration", type=float, default=None,
-                        help=f"stand / sway: seconds (default 2 / {SwaySpec.duration_s:g})")
-    args = parser.parse_args(argv)
+                        help=f"stand / sway: length of the clip (s; default: {STAND_S:g} / {SwaySpec.duration_s:g})")
+
+
+def main(args: argparse.Namespace) -> int:
+    """``otr procedural MOTION OUT``: write the clip and print its length and travel."""
     if args.motion == "walk":
         ref = walking_reference(WalkSpec(steps=args.steps, step_length_m=args.step_length))
     elif args.motion == "sway":
         ref = sway_reference(SwaySpec(duration_s=args.duration or SwaySpec.duration_s))
     else:
-        ref = standing_reference(args.duration or 2.0)
+        ref = standing_reference(args.duration or STAND_S)
     path = ref.save(args.out)
     print(f"wrote {path}: {ref.num_frames} frames at {ref.fps:g} fps ({ref.duration_s:.1f} s), "
           f"root travels {ref.root_pos_w[-1, 0] - ref.root_pos_w[0, 0]:.2f} m")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

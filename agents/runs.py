@@ -11,8 +11,9 @@ A training run is one folder ``<log_dir>/<task>_<reference stem>_<YYYYmmdd-HHMMS
 Every file is written to a temporary name in the same folder and renamed, so an interrupted
 write never leaves a truncated file under the final name.
 
-``python -m agents.runs latest RUN`` prints a run's latest checkpoint, for the shell recipes that
-carry a run to another machine (``benchmarks/train_box.sh carry``, ``train_box_gpus.sh pack``).
+``otr runs latest RUN`` prints a run's latest checkpoint, for the shell recipes that carry a run
+to another machine (``benchmarks/train_box.sh carry``, ``train_box_gpus.sh pack``); ``otr runs
+policy-only RUN --every N --out DIR`` writes policy-only copies of its checkpoints.
 """
 
 from __future__ import annotations
@@ -167,28 +168,32 @@ def run_config(run_dir: str | Path) -> dict:
     return read_yaml(Path(run_dir) / CONFIG_FILE)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m agents.runs", description="Training run folders.")
-    sub = parser.add_subparsers(dest="command", required=True)
-    latest = sub.add_parser("latest", help="print the latest checkpoint of a run folder")
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr runs``'s sub-commands: ``latest`` and ``policy-only``."""
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    latest = sub.add_parser("latest", help="print the latest checkpoint of a run folder",
+                            description="print the latest checkpoint (by iteration) of a run folder")
     latest.add_argument("run", help="run folder")
     slim = sub.add_parser("policy-only", help="policy-only copies of a run's checkpoints every N iterations "
-                          "(all but the latest), to evaluate elsewhere")
+                          "(all but the latest), to evaluate elsewhere",
+                          description="policy-only copies (the actor, no critic or optimizer) of a run's checkpoints "
+                          "every N iterations, all but the latest (which travels whole)")
     slim.add_argument("run", help="run folder")
-    slim.add_argument("--every", type=int, required=True, help="iterations between the copies")
+    slim.add_argument("--every", type=int, required=True, help="iterations between the copies (the checkpoints at "
+                      "multiples of it)")
     slim.add_argument("--out", required=True, help="folder to write them to (same file names)")
-    args = parser.parse_args(argv)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``otr runs latest|policy-only``: one path per line on stdout; a folder without checkpoints or
+    a bad ``--every``: the message on stderr, exit code 1."""
     try:
-        if args.command == "latest":
+        if args.action == "latest":
             print(resolve_checkpoint(args.run).path)
         else:
             for path in policy_only_copies(args.run, args.every, args.out):
                 print(path)
     except (RunError, ValueError) as exc:
-        print(exc, file=sys.stderr)
+        print(f"otr runs {args.action}: {exc}", file=sys.stderr)
         return 1
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -48,10 +48,11 @@ import yaml
 
 from agents import distributed, runs
 from agents.config import TrainCfg, load_train_config, train_config_from_dict
-from agents.library import ClipLibrary, load_library, with_terrain
+from agents.library import ClipLibrary, prepare_library, with_terrain
 from agents.runner import TrackingRunner
 from agents.stopping import StopConditions, TrainingStopped
 from agents.vecenv import RslRlVecEnv, make_vec_env
+from envs.config import TrackEnvCfg, load_env_config
 from otr_gym.config import merge
 from otr_gym.reference import InvalidReferenceError
 
@@ -103,9 +104,22 @@ def _overrides(args: argparse.Namespace) -> dict:
     return merge(parse_sets(getattr(args, "sets", []) or []), {k: v for k, v in keys.items() if v is not None})
 
 
-def _setup(args: argparse.Namespace) -> tuple[TrainCfg, ClipLibrary, Path | None, runs.Checkpoint | None, dict]:
-    """(config, clip library, run folder (None: new run), checkpoint to resume, run record):
-    everything that can be checked before the (slow) environment is built."""
+@dataclasses.dataclass
+class TrainSetup:
+    """Everything ``otr train`` settles before the (slow) environment is built, each read once:
+    the training config, the task's env config, the clip library (clip lists parsed, clips
+    loaded and prepared), which the environment takes as they are."""
+
+    cfg: TrainCfg  # its ``env`` overrides as the run records them (``with_terrain``: clip-list meshes added)
+    env_cfg: TrackEnvCfg  # the task's env config under the given overrides; clip-list meshes ride with the clips
+    library: ClipLibrary
+    run_dir: Path | None  # None: a new run (its folder is made once the environment stands)
+    ckpt: runs.Checkpoint | None  # the checkpoint to resume
+    record: dict  # the run record (config.yaml)
+
+
+def _setup(args: argparse.Namespace) -> TrainSetup:
+    """Read and check the configs, the references and the run to resume."""
     if args.iterations is not None and args.iterations < 1:
         raise ValueError(f"--iterations must be >= 1, got {args.iterations}")
     if args.resume:
@@ -127,14 +141,15 @@ def _setup(args: argparse.Namespace) -> tuple[TrainCfg, ClipLibrary, Path | None
         cfg = load_train_config(args.config, _overrides(args))
         reference = args.reference
         run_dir = None
-    library = load_library(reference, cfg.task, cfg.env, report=int(os.environ.get("RANK", "0")) == 0)
+    env_cfg = load_env_config(cfg.task, overrides=cfg.env or None)
+    library = prepare_library(reference, env_cfg.command, report=int(os.environ.get("RANK", "0")) == 0)
     cfg = dataclasses.replace(cfg, env=with_terrain(cfg.env, library))
     record.update(train=cfg.to_dict(), reference=library.source, reference_info=library.info())
     record.setdefault("sessions", []).append({
         "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "args": {k: v for k, v in vars(args).items() if v is not None and not callable(v) and k != "argv"},
         "resumed_from": str(ckpt.path) if ckpt else None})
-    return cfg, library, run_dir, ckpt, record
+    return TrainSetup(cfg, env_cfg, library, run_dir, ckpt, record)
 
 
 def _seed_everything(seed: int) -> None:
@@ -153,7 +168,8 @@ def train(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace, ctx: distributed.Context) -> int:
     device = ctx.device
-    cfg, library, run_dir, ckpt, record = _setup(args)
+    setup = _setup(args)
+    cfg, library, run_dir, ckpt, record = setup.cfg, setup.library, setup.run_dir, setup.ckpt, setup.record
     seed = cfg.seed + ctx.rank  # ranks explore differently
     record["device"] = str(device)
     record["world_size"] = ctx.world_size
@@ -162,7 +178,7 @@ def _train(args: argparse.Namespace, ctx: distributed.Context) -> int:
     # process-wide, like the seed: the networks' float32 matmuls (the MDP's maths is element-wise)
     torch.backends.cuda.matmul.allow_tf32 = cfg.tf32_matmul
 
-    env = make_vec_env(cfg.task, list(library.references), cfg.num_envs, str(device), cfg.env, seed=seed)
+    env = make_vec_env(cfg.task, library.clips, cfg.num_envs, str(device), setup.env_cfg, seed=seed)
     stop = StopConditions(args.max_minutes)
     vec = RslRlVecEnv(env, cfg.num_steps_per_env, seed=seed, stop=stop)
     if ctx.is_main:

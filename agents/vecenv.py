@@ -36,7 +36,7 @@ import otr_gym  # noqa: F401  (registers the environments)
 from agents.library import clip_labels
 from agents.metrics import M_TO_MM, ClipRolloutStats, reduce_sum
 from agents.stopping import StopConditions, TrainingStopped
-from envs.config import load_env_config
+from envs.config import TrackEnvCfg, load_env_config
 from envs.mdp.metrics import mpjpe_root_relative
 from envs.task import NON_FINITE, masked_mean
 
@@ -154,10 +154,12 @@ class RslRlVecEnv(VecEnv):
         return TensorDict(dict(obs), batch_size=[self.num_envs], device=self.device)
 
 
-def make_vec_env(task: str, reference, num_envs: int, device: str, env_overrides: dict | None = None,
+def make_vec_env(task: str, reference, num_envs: int, device: str, env: TrackEnvCfg | dict | None = None,
                  evaluation: bool = False, seed: int = 0):
-    """The Gymnasium vector env ``task`` on MuJoCo-Warp (``device`` "cuda[:K]" or "cpu"),
-    with ``env_overrides`` applied on top of the task's YAML (configs/env/track.yaml or box.yaml)."""
-    cfg = load_env_config(task, overrides=env_overrides or None)
+    """The Gymnasium vector env ``task`` on MuJoCo-Warp (``device`` "cuda[:K]" or "cpu") of
+    ``reference`` (a reference source or ``envs.clips.PreparedClips``). ``env``: the task's
+    config, loaded already (``otr train`` reads it once), or overrides laid over the task's YAML
+    (configs/env/track.yaml or box.yaml)."""
+    cfg = env if isinstance(env, TrackEnvCfg) else load_env_config(task, overrides=env or None)
     return gymnasium.make_vec(task, num_envs=num_envs, vectorization_mode="vector_entry_point", device=device,
                               reference=reference, cfg=cfg, evaluation=evaluation, seed=seed)

@@ -14,7 +14,7 @@
 # it) and packed.
 #
 # With EVERY=N, a second archive, OUT_policies.tar.gz (OUT.tar.gz's name), holds policy-only
-# copies of the run's checkpoints at multiples of N iterations (`python -m agents.runs
+# copies of the run's checkpoints at multiples of N iterations (`python -m otr_gym.cli runs
 # policy-only`: the actor without critic or optimizer, ~1 MB each), under the same paths: extract
 # it beside the run and `otr evaluate RUN --plot P` measures every one, how the policy got there.
 #
@@ -32,7 +32,7 @@ else
   [ -n "$run" ] && [ -d "$run" ] ||
     { echo "$latest: no trained run${log:+ and no run folder in $log} (run the train stage first)" >&2; exit 1; }
 fi
-last=$("$py" -m agents.runs latest "$run")  # names a folder that has no checkpoint yet
+last=$("$py" -m otr_gym.cli runs latest "$run")  # names a folder that has no checkpoint yet
 [ -f "$latest" ] || echo "$run" > "$latest"  # only once it has one: the train stage resumes it
 mkdir -p "$(dirname "$tar_out")"
 # a file list, not --exclude: tar's exclusions would drop the checkpoint named on the command line too
@@ -40,7 +40,7 @@ mkdir -p "$(dirname "$tar_out")"
   tar czf "$tar_out" --verbatim-files-from -T -
 if [ "${EVERY:-0}" -gt 0 ]; then
   slim=$(mktemp -d)
-  "$py" -m agents.runs policy-only "$run" --every "$EVERY" --out "$slim" > /dev/null
+  "$py" -m otr_gym.cli runs policy-only "$run" --every "$EVERY" --out "$slim" > /dev/null
   names=$(cd "$slim" && ls)
   policies="${tar_out%.tar.gz}_policies.tar.gz"
   if [ -n "$names" ]; then

@@ -35,14 +35,14 @@ from otr_gym.rotations import (
     quat_from_yaw,
     quat_to_matrix,
 )
-from retarget.inputs.demonstration import Demonstration
-from retarget.inputs.readers import load_demonstration
 from retarget.evaluation.alignment import demo_at_times
 from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
 from retarget.evaluation.report import format_scale_notes, format_table
 from retarget.evaluation.sequence import evaluate_sequence, json_safe
+from retarget.inputs.demonstration import Demonstration
+from retarget.inputs.readers import load_demonstration
 
-#: The paper's rows for this clip (Sec. IV-B, Fig. "largebox"; METHOD.md headline numbers).
+#: The paper's rows for this clip (Sec. IV-B, Fig. "largebox"; docs/method.md "Headline numbers of the paper").
 PAPER_ROWS = (
     "paper, OmniRetarget: sc 0.68, object dd 5.7 mm, dw 54 mm, R 95 %, P 58 %, J 56 %",
     "paper, OTRetarget (ours): object dd 10.0 mm, dw 42 mm, R 94 %, P 89 %, J 85 %",

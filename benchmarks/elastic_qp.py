@@ -27,13 +27,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-full-rows", type=int, default=2000, help="skip the all-rows solve above this many rows")
     args = ap.parse_args(argv)
 
-    from retarget.geometry.channels import GeometryConfig
-    from retarget.config import RetargetConfig
-    from retarget.solver.qp_workspace import QPWorkspace
-    from retarget.inputs.shapes import ShapeSpec
-    from retarget.solver.substitute import SubstitutionConfig
-    from retarget.inputs.synthetic import generate
     from retarget.cli.variants import VariantJob, run_variant
+    from retarget.config import RetargetConfig
+    from retarget.geometry.channels import GeometryConfig
+    from retarget.inputs.shapes import ShapeSpec
+    from retarget.inputs.synthetic import generate
+    from retarget.solver.qp_workspace import QPWorkspace
+    from retarget.solver.substitute import SubstitutionConfig
 
     recorded: list[tuple[list[np.ndarray], np.ndarray, float, list[int], float]] = []
     elastic, with_slacks = QPWorkspace._solve_elastic, QPWorkspace._solve_with_slacks

@@ -11,7 +11,7 @@ steps at 200 Hz):
 - ``backend``: the env's physics graph alone (physics + contact-force maxima + kinematics refresh);
 - ``raw``: a graph of nothing but ``decimation`` × ``mujoco_warp.step`` on the same Model/Data
   (with the env's contact sensors); ``raw_bare``: the same on the G1 without contact sensors,
-  standing keyframe, no resets (the setting of docs/DEVICE.md).
+  standing keyframe, no resets (the setting of docs/environment.md §1).
 
 ``env/raw`` is the share of the raw physics ceiling the env keeps. Before timing, two checks run
 on CUDA: no torch host synchronisation inside ``step`` (``torch.cuda.set_sync_debug_mode``),
@@ -104,7 +104,7 @@ def _capture_steps(model, data, decimation: int, device):
 
 
 def _bare_world(num_envs: int, device, nconmax: int, njmax: int):
-    """(Model, Data) of the G1 + ground without contact sensors: the setting of docs/DEVICE.md."""
+    """(Model, Data) of the G1 + ground without contact sensors: the setting of docs/environment.md §1."""
     import mujoco
     import mujoco_warp as mjw
     import warp as wp
@@ -176,7 +176,7 @@ def bench_vector(task_id: str, reference, num_envs: int, device: str, steps: int
     row["env_over_raw"] = row["env_steps_per_s"] / row["raw_steps_per_s"]
     row["contacts_per_world"] = float(backend.warp_data.nacon.numpy()[0]) / num_envs
 
-    # The same without contact sensors, standing keyframe, no resets: comparable to docs/DEVICE.md.
+    # The same without contact sensors, standing keyframe, no resets: comparable to docs/environment.md §1.
     bare_m, bare_d = _bare_world(num_envs, wp_device, cfg.sim.nconmax, cfg.sim.njmax)
     bare = _capture_steps(bare_m, bare_d, backend.decimation, wp_device)
     row["raw_bare_steps_per_s"], _ = _rate(lambda i: wp.capture_launch(bare), steps, num_envs, dev)
@@ -215,7 +215,8 @@ def _table(rows: list[dict]) -> str:
             lines.append(f"| {r['task']} | {r['num_envs']} | error: {r['error']} |")
             continue
         mem = f"{r['device_mem_gib']:.2f}" if "device_mem_gib" in r else "-"
-        lines.append(f"| {r['task']} | {r['num_envs']} | {r['env_steps_per_s']:,.0f} | {r['backend_steps_per_s']:,.0f} | "
+        lines.append(f"| {r['task']} | {r['num_envs']} | {r['env_steps_per_s']:,.0f} | "
+                     f"{r['backend_steps_per_s']:,.0f} | "
                      f"{r['raw_steps_per_s']:,.0f} | {r['env_over_raw']:.0%} | {r['raw_bare_steps_per_s']:,.0f} | "
                      f"{r['env_ms_per_step']:.2f} | {mem} | "
                      f"{r['contacts_per_world']:.1f} |")
@@ -256,11 +257,10 @@ def main(argv=None) -> dict:
                         help="JSON path; the markdown table is written beside it (.md)")
     args = parser.parse_args(argv)
 
-    import warp as wp
-
     from agents.procedural import WalkSpec, walking_reference
+    from envs.backends.warp_backend import quiet_warp
 
-    wp.config.quiet = True
+    quiet_warp()  # the bare-G1 ceiling below uses Warp before any environment does
     box = args.task == "OTR-G1-BoxTrack-v0"
     if box and args.reference is None:
         parser.error("--task OTR-G1-BoxTrack-v0 needs --reference with objects (e.g. out/demo/box_carry.npz)")

@@ -64,9 +64,9 @@ def unit_margins(units) -> np.ndarray:
 
 def score(ref_path: Path, demo_path: Path, true_surface: bool, ms_per_frame: float | None) -> dict[str, float]:
     from otr_gym.reference import Reference
-    from retarget.inputs.readers import load_demonstration
     from retarget.evaluation.sequence import evaluate_sequence
     from retarget.evaluation.units import default_units
+    from retarget.inputs.readers import load_demonstration
 
     ref = Reference.load(ref_path)
     demo = load_demonstration(demo_path)
@@ -122,9 +122,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.references is not None:
             ref_path = args.references / f"{name}.npz"
         else:
-            from retarget.inputs.readers import load_demonstration
             from retarget.clip import retarget_timed
             from retarget.config import load_config
+            from retarget.inputs.readers import load_demonstration
 
             ref_path = args.out / f"{name}.npz"
             start = time.perf_counter()

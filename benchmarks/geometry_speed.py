@@ -54,7 +54,8 @@ def channel_rows(name: str, mesh, cache: Path) -> list[tuple[str, str]]:
         rows.append((f"{name}: query exact_witness, {label}", f"{exact / n * 1e3:.3f} ms/1000"))
     w = ch.query(near).w
     w_hat = w[rng.permutation(len(w))]
-    rows.append((f"{name}: geodesic ({len(w)} pairs)", f"{best_ms(lambda: ch.geodesic(w, w_hat)) / len(w) * 1e3:.3f} ms/1000"))
+    rows.append((f"{name}: geodesic ({len(w)} pairs)",
+                 f"{best_ms(lambda: ch.geodesic(w, w_hat)) / len(w) * 1e3:.3f} ms/1000"))
     return rows
 
 

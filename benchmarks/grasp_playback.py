@@ -1,8 +1,8 @@
 """Can the reference's hands hold its object? Kinematic playback of box references.
 
 The robot is put on the reference at every physics step (qpos interpolated between frames,
-qvel from the reference; immovable within the step's contact solve) and only the objects are simulated: MuJoCo on the CPU, the
-OTR-G1-BoxTrack-v0 model (fitted hand boxes, grasp-fitted box, nominal mass and friction, no
+qvel from the reference; immovable within the step's contact solve) and only the objects are simulated:
+MuJoCo on the CPU, the OTR-G1-BoxTrack-v0 model (fitted hand boxes, grasp-fitted box, nominal mass and friction, no
 randomisation): what a policy that tracks perfectly, squeezing no harder than the reference's
 hands, does to the box. A box that slips or tips here asks the policy for more than tracking
 (a firmer squeeze, another hold). Prints one row per reference (frames

@@ -32,9 +32,9 @@ from tqdm import tqdm
 
 from envs.kinematic_playback import DRAWS_HEADER, draws_row, draws_summary, play_draws
 from otr_gym.io import write_json
-from retarget.inputs.readers import load_demonstration
 from retarget.clip import retarget_demonstration
 from retarget.config import ConfigError, load_config
+from retarget.inputs.readers import load_demonstration
 
 
 def seed_range(text: str) -> list[int]:

@@ -71,7 +71,6 @@ def run_clip(label: str, load, frames: int | None) -> dict:
     import numpy as np
 
     from retarget.clip import problem_from_config
-
     from retarget.config import RetargetConfig
     from retarget.solver.problem import resample_demonstration
     from retarget.solver.sqp import solve_sequence

@@ -75,7 +75,8 @@ def table(rows: list[dict], surface: str) -> str:
              "| reference | frames | into the ground: deepest mm (link) | frames > 1 mm / > 1 cm | hands: deepest mm, "
              "frames > 1 cm | self p95 / max mm |", "|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {'/'.join(Path(r['reference']).parts[-2:])} | {r['frames']} | {1e3 * r['ground_m']:.1f} ({r['ground_link']}) "
+        lines.append(f"| {'/'.join(Path(r['reference']).parts[-2:])} | {r['frames']} | "
+                     f"{1e3 * r['ground_m']:.1f} ({r['ground_link']}) "
                      f"| {r['frames_over_1mm']} / {r['frames_over_1cm']} | {1e3 * r['hands_m']:.1f}, "
                      f"{r['hand_frames_over_1cm']} | {1e3 * r['self_p95_m']:.2f} / {1e3 * r['self_max_m']:.2f} |")
     return "\n".join(lines)

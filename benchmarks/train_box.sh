@@ -75,7 +75,7 @@ report() {
   [ -f "$latest" ] || { echo "$latest: no trained run (run the train stage first)" >&2; exit 1; }
   local run
   run=$(cat "$latest")
-  "$py" -m agents.plots "$run" --png "$out/training_curves.png" --json "$run/training_summary.json"
+  "$py" -m otr_gym.cli plot "$run" --png "$out/training_curves.png" --json "$run/training_summary.json"
   "$py" -m otr_gym.cli evaluate "$run" --last --reference "$ref" --device "$device" --json "$out/eval.json"
   "$py" -m otr_gym.cli evaluate "$run" --last --randomize --reference "$ref" --device "$device" \
     --num-envs "${EVAL_ENVS:-1024}" --json "$out/eval_randomized.json"
@@ -114,7 +114,7 @@ prune() {
   [ -f "$latest" ] || { echo "$latest: no run" >&2; exit 1; }
   local run last
   run=$(cat "$latest")
-  last=$("$py" -m agents.runs latest "$run") || exit 1
+  last=$("$py" -m otr_gym.cli runs latest "$run") || exit 1
   for f in "$run"/model_*.pt; do
     it=$(basename "$f" .pt); it=${it#model_}
     if [ "$(basename "$f")" != "$(basename "$last")" ] && [ $(( (it + 1) % 500 )) -ne 0 ]; then rm -f "$f"; fi

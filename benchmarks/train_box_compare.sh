@@ -13,7 +13,7 @@
 # start, so one command stays inside a 10-minute limit. With "report": train_box.sh report for all
 # five concurrently (EVAL_ENVS=512, VIDEO=0). Everything goes to $OUT/summary.txt and
 # $OUT/results.tgz: per job its logs, evaluations, curves, config and TensorBoard event files (JOB/run,
-# so `python -m agents.plots ours/run holo/run … --labels …` draws the runs on one figure). The
+# so `python -m otr_gym.cli plot ours/run holo/run … --labels …` draws the runs on one figure). The
 # device machine sees only the working tree, so the inputs are copied into a git-ignored folder IN
 # (default out/b5in) carried with the call:
 #   mkdir -p out/b5in; otr demo --out out/demo_box; cp out/demo_box/box_carry.npz out/b5in/demo_box_carry.npz

@@ -199,7 +199,7 @@ case ${1:-} in
     for d in runs/gpus/*/; do
       [ -f "$d/RESUMABLE" ] && [ -f "$d/LATEST_RUN" ] || continue
       run=$(cat "$d/LATEST_RUN")
-      last=$(python3 -m agents.runs latest "$run" 2>/dev/null)  # highest-numbered; nothing when none
+      last=$(python3 -m otr_gym.cli runs latest "$run" 2>/dev/null)  # highest-numbered; nothing when none
       [ -n "$last" ] || { echo "pack: no checkpoint in $run" >&2; continue; }
       tar cf "${tgz%.tgz}_checkpoint_$(basename "$d").tar" "$last" || exit 1
     done

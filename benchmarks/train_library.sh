@@ -127,9 +127,9 @@ report() {
   [ -f "$latest" ] || { echo "$latest: no trained run (run the train stage first)" >&2; exit 1; }
   local run
   run=$(cat "$latest")
-  "$py" -m agents.plots "$run" --png "$out/training_curves.png" --clips-png "$out/clip_curves.png" \
+  "$py" -m otr_gym.cli plot "$run" --png "$out/training_curves.png" --clips-png "$out/clip_curves.png" \
     --json "$out/training_summary.json"
-  "$py" -m agents.failure_bins "$run" --png "$out/failure_bins.png" --json "$out/failure_bins.json"
+  "$py" -m otr_gym.cli failure-map "$run" --png "$out/failure_bins.png" --json "$out/failure_bins.json"
   if [ "${EVERY:-0}" -gt 0 ]; then  # how the policy got there: every EVERY-th checkpoint and the latest, from frame 0
     "$py" -m otr_gym.cli evaluate "$run" --every "$EVERY" --device "$device" --json "$out/eval.json" \
       --plot "$out/progress.png"

@@ -34,7 +34,7 @@ mkdir -p "$out" "$runs_dir"
 
 if [ -z "$ref" ]; then
   ref="$runs_dir/walk_procedural.npz"
-  [ -f "$ref" ] || "$py" -m agents.procedural walk "$ref"
+  [ -f "$ref" ] || "$py" -m otr_gym.cli procedural walk "$ref"
 fi
 
 train() {
@@ -53,7 +53,7 @@ report() {
   [ -f "$latest" ] || { echo "$latest: no trained run (run the train stage first)" >&2; exit 1; }
   local run
   run=$(cat "$latest")
-  "$py" -m agents.plots "$run" --png "$out/training_curves.png" --json "$out/training_summary.json"
+  "$py" -m otr_gym.cli plot "$run" --png "$out/training_curves.png" --json "$out/training_summary.json"
   "$py" -m otr_gym.cli evaluate "$run" --reference "$ref" --device "$device" \
     --json "$out/eval.json" --plot "$out/eval_mpjpe.png"
   "$py" -m otr_gym.cli evaluate "$run" --last --randomize --reference "$ref" --device "$device" \

@@ -85,7 +85,8 @@ def main() -> int:
     finally:
         viewer.close()
     print(f"{ref.num_frames}-frame reference at {ref.fps:g} fps; {platform.node()}, {os.cpu_count()} cores, "
-          f"{time.strftime('%Y-%m-%d')}; Debian chromium, software WebGL; shadows {not args.no_shadows}, {args.viewport} window")
+          f"{time.strftime('%Y-%m-%d')}; Debian chromium, software WebGL; "
+          f"shadows {not args.no_shadows}, {args.viewport} window")
     print(f"page load {load_s:.2f} s; while playing: {raf / args.seconds:.1f} render fps, "
           f"{shown / args.seconds:.1f} reference frames/s shown")
     return 0

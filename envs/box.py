@@ -9,7 +9,7 @@ bodies, static ones fixed) and object terms in the config (``configs/env/box.yam
     envs = gymnasium.make_vec("OTR-G1-BoxTrack-v0", num_envs=4096, vectorization_mode="vector_entry_point",
                               device="cuda", reference="box_carry.npz")
 
-What the objects add (RL_SPEC §3 object variant, §4 object terms, §5, §6):
+What the objects add (docs/environment.md §3 object variant, §4 object terms, §5, §6):
 
 - reset: every moving object on its reference pose and velocity at the start frame. With reset
   noise, an object held at that frame (a hand window open) takes the robot root's noise
@@ -39,15 +39,16 @@ import numpy as np
 import torch
 
 from envs.backends import ContactPair, PhysicsBackend, build_sim_model, make_backend
+from envs.clips import PreparedClips, placed_clips
 from envs.config import BoxEnvCfg, load_box_config
 from envs.mdp.metrics import object_orientation_error_rad, object_position_error_m
-from envs.mdp.motion import MotionLibrary, ReferenceSource, prepared_references
+from envs.mdp.motion import MotionLibrary, ReferenceSource
 from envs.mdp.objects import ObjectLibrary, fit_boxes_to_grasps
 from envs.mdp.randomization import randomize_objects
 from envs.mdp.state import ObjectState, TrackingState
 from envs.objects import GROUND_GEOM, SceneObjects, is_static, object_qpos, object_qvel, scene_objects
 from envs.task import TrackingTask, masked_mean
-from envs.terrain import SceneTerrain, contact_buffers, place_terrain, terrain_meshes
+from envs.terrain import SceneTerrain, contact_buffers
 from envs.tracking import TrackEnv, TrackVecEnv
 from otr_gym.reference import InvalidReferenceError
 from otr_gym.rotations import quat_apply, quat_mul
@@ -70,6 +71,8 @@ def contact_pairs(objects: SceneObjects, hands, hand_roots,
 
 class BoxTrackingTask(TrackingTask):
     """``TrackingTask`` with simulated objects (see the module docstring)."""
+
+    cfg: BoxEnvCfg
 
     def __init__(self, cfg: BoxEnvCfg, motion: MotionLibrary, objects: ObjectLibrary, scene: SceneObjects,
                  backend: PhysicsBackend, seed: int = 0, autoreset: bool = True, terrain: SceneTerrain | None = None):
@@ -100,20 +103,20 @@ class BoxTrackingTask(TrackingTask):
         lib, rows = self.objects, self.command.start_rows
         pos, quat = lib.pos_w[rows], lib.quat_w[rows]  # (N, M, ·)
         lin, ang = lib.lin_vel_w[rows], lib.ang_vel_w[rows]
-        noise = self.command.root_noise
-        if noise is not None:
+        root_noise = self.command.root_noise
+        if root_noise is not None:
             held = (lib.hand_gate[rows] > 0).any(dim=1)[..., None]  # (N, M, 1): a hand window is open
             root = self.motion.root_pos_w[rows][:, None]
-            turn = noise.turn[:, None].expand_as(quat)
-            carried = root + noise.shift[:, None] + quat_apply(turn, pos - root)
-            kick = noise.lin[:, None] + torch.cross(noise.ang[:, None].expand_as(pos), carried - root - noise.shift[:, None],
-                                                    dim=-1)
+            turn = root_noise.turn[:, None].expand_as(quat)
+            carried = root + root_noise.shift[:, None] + quat_apply(turn, pos - root)
+            lever = carried - root - root_noise.shift[:, None]
+            kick = root_noise.lin[:, None] + torch.cross(root_noise.ang[:, None].expand_as(pos), lever, dim=-1)
             loose = pos + (2.0 * torch.rand(pos.shape, device=self.device, generator=self.generator) - 1.0) * \
                 self._object_noise
             pos = torch.where(held, carried, loose)
             quat = torch.where(held, quat_mul(turn, quat), quat)
             lin = torch.where(held, lin + kick, lin)
-            ang = torch.where(held, ang + noise.ang[:, None], ang)
+            ang = torch.where(held, ang + root_noise.ang[:, None], ang)
         return (torch.cat([qpos, object_qpos(pos, quat)], dim=-1),
                 torch.cat([qvel, object_qvel(quat, lin, ang)], dim=-1))
 
@@ -126,7 +129,8 @@ class BoxTrackingTask(TrackingTask):
         ids = self._object_ids
         pos, quat = b.body_pos_w[:, ids], b.body_quat_w[:, ids]
         hand_quat = b.body_quat_w[:, self._hand_ids]
-        hand_pos = b.body_pos_w[:, self._hand_ids] + quat_apply(hand_quat, self._hand_offset.expand_as(hand_quat[..., :3]))
+        hand_pos = b.body_pos_w[:, self._hand_ids] + quat_apply(hand_quat,
+                                                                self._hand_offset.expand_as(hand_quat[..., :3]))
         target_o = lib.hand_target_o[rows]  # (N, H, M, 3)
         obj_quat = quat[:, None].expand(-1, self._num_hands, -1, -1)
         target_w = pos[:, None] + quat_apply(obj_quat, target_o)
@@ -149,6 +153,7 @@ class BoxTrackingTask(TrackingTask):
     def _log(self, terms, fired, s: TrackingState, valid: torch.Tensor) -> dict:
         log = super()._log(terms, fired, s, valid)
         o = s.objects
+        assert o is not None  # the box task always tracks objects
         log["metric/object_pos_error_m"] = masked_mean(object_position_error_m(s), valid)
         log["metric/object_ori_error_rad"] = masked_mean(object_orientation_error_rad(s), valid)
         log["metric/hand_gate"] = masked_mean(o.hand_gate, valid)
@@ -178,7 +183,7 @@ class BoxTrackingTask(TrackingTask):
         return meta
 
 
-def make_box_task(reference: ReferenceSource, num_envs: int, backend: str, device: str,
+def make_box_task(reference: ReferenceSource | PreparedClips, num_envs: int, backend: str, device: str,
                   cfg: BoxEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0,
                   autoreset: bool = True) -> BoxTrackingTask:
     """Load the references (failing fast on bad ones and on bad objects), build the objects,
@@ -187,8 +192,7 @@ def make_box_task(reference: ReferenceSource, num_envs: int, backend: str, devic
         cfg = load_box_config(cfg)
     if evaluation:
         cfg = cfg.for_evaluation()
-    refs = prepared_references(reference, cfg.command.tracked_bodies, cfg.command.fps, cfg.command.min_clip_frames)
-    refs, terrain = place_terrain(refs, cfg.terrain, terrain_meshes(cfg.terrain.meshes, reference))
+    refs, terrain = placed_clips(reference, cfg)
     if np.ptp(terrain.clip_origin_w, axis=0).any():
         static = sorted({t.name for r in refs for t in r.objects if is_static(t, cfg.objects)})
         if static:
@@ -220,6 +224,7 @@ class BoxTrackEnv(TrackEnv):
     """One box-tracking env on CPU MuJoCo (Gymnasium single-env API); ``render()`` shows the
     robot, the objects and a translucent ghost of the reference robot and moving objects."""
 
+    task: BoxTrackingTask
     make_task = staticmethod(make_box_task)
 
     def _make_renderer(self):

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from otr_gym.io import save_npz
+from otr_gym.io import load_npz, save_npz
 from otr_gym.rotations import matrix_to_quat
 
 
@@ -121,7 +121,8 @@ def fit_box(vertices: np.ndarray, faces: np.ndarray, cfg: CollisionCfg = Collisi
     if np.linalg.det(rot) < 0:  # keep a right-handed frame (flip one axis; a box is symmetric)
         rot = rot * np.array([1.0, 1.0, -1.0])
     box = BoxShape(half_extents=half, pos=transform[:3, 3].copy(), quat_wxyz=matrix_to_quat(rot))
-    return BoxFit(box, float(hull.volume / np.prod(2 * half)), float(np.mean(gap < tol)), float(np.mean(nearest < max(tol, 2.0 * spacing))))
+    return BoxFit(box, float(hull.volume / np.prod(2 * half)), float(np.mean(gap < tol)),
+                  float(np.mean(nearest < max(tol, 2.0 * spacing))))
 
 
 def load_mesh(path: str | Path, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -144,7 +145,8 @@ def load_mesh(path: str | Path, what: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def collision_shapes(vertices: np.ndarray | None, faces: np.ndarray | None, what: str,
-                     cfg: CollisionCfg = CollisionCfg(), cache_dir: Path | None = None) -> tuple[list[CollisionShape], str]:
+                     cfg: CollisionCfg = CollisionCfg(),
+                     cache_dir: Path | None = None) -> tuple[list[CollisionShape], str]:
     """(shapes, method) for a mesh; ``method`` is "box", "boxes" or "convex decomposition".
 
     ``what`` names the mesh in errors (e.g. "clip.npz: object 'box'"). Raises
@@ -204,10 +206,9 @@ def _decompose(mesh, what: str, cfg: CollisionCfg, cache_dir: Path | None) -> li
     path = folder / "collision" / f"{digest.hexdigest()[:32]}.npz"
     if path.is_file():
         try:
-            with np.load(path) as data:
-                count = int(data["count"])
-                return [HullShape(data[f"v{i}"], data[f"f{i}"]) for i in range(count)]
-        except (OSError, ValueError, KeyError):
+            data = load_npz(path)
+            return [HullShape(data[f"v{i}"], data[f"f{i}"]) for i in range(int(data["count"]))]
+        except (OSError, ValueError, KeyError):  # NpzError is a ValueError
             pass  # an unreadable cache entry is rebuilt below
     try:
         import coacd

@@ -64,7 +64,8 @@ class Playback:
         end = "–" if self.ended_at is None else f"frame {self.ended_at}"
         g = self.grasp
         hold = "– | – | – | –" if g is None else \
-            f"{g.frames} | {g.hand_height:+.2f} | {g.hand_centre_height:+.2f} | {g.centre_height_m:.2f} m, {g.tilt_deg:.0f}°"
+            f"{g.frames} | {g.hand_height:+.2f} | {g.hand_centre_height:+.2f} | " \
+            f"{g.centre_height_m:.2f} m, {g.tilt_deg:.0f}°"
         return (f"| {Path(self.reference).name} | {self.frames} / {self.clip_frames - 1} | {pos.mean():.1f} / "
                 f"{np.percentile(pos, 95):.1f} | {ori.mean():.1f} / {ori.max():.1f} | {end} | {hold} |")
 
@@ -176,7 +177,8 @@ def draws_row(name: str, summary: dict) -> str:
     """One markdown row of ``draws_summary`` (see ``DRAWS_HEADER``)."""
     s = summary
     return (f"| {name} | {s['carried']} / {s['runs']} | {s['error_cm_mean']:.1f} ± {s['error_cm_sd']:.1f} "
-            f"({s['error_cm_min']:.1f}–{s['error_cm_max']:.1f}) | {s['error_p95_cm']:.1f} | {s['orientation_deg']:.1f} |")
+            f"({s['error_cm_min']:.1f}–{s['error_cm_max']:.1f}) | {s['error_p95_cm']:.1f} | "
+            f"{s['orientation_deg']:.1f} |")
 
 
 DRAWS_HEADER = ("| reference | runs carried to the end | box error cm, mean of a run: mean ± sd (min–max) "

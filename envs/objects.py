@@ -136,7 +136,7 @@ def scene_objects(refs: Sequence[Reference], cfg: ObjectsCfg) -> SceneObjects:
         raise ValueError(f"objects.overrides names {unknown}, which are not objects of {first.source} "
                          f"({[o.name for o in first.objects]})")
     out = []
-    for i, track in enumerate(first.objects):
+    for i in range(len(first.objects)):
         static = all(is_static(ref.objects[i], cfg) for ref in refs)
         for ref in refs[1:]:
             _check_same_object(first, ref, i, static)

@@ -3,14 +3,14 @@
 Per ``step(actions)`` (N envs at once, torch on the backend's device, no host sync):
 
 1. clip the raw actions; PD targets q* = q_default(+bias) + ACTION_SCALE·a go to the MJCF
-   position actuators (kp/kd/effort of RL_SPEC §1) for ``decimation`` physics steps, after a
+   position actuators (kp/kd/effort of docs/environment.md §1) for ``decimation`` physics steps, after a
    velocity push for envs whose push timer ran out (domain randomisation);
 2. build the ``TrackingState`` (robot after physics vs. the target frame) and evaluate the
    terminations and the rewards (Σ weight·value·dt) listed in the config;
 3. count failures for adaptive sampling, advance every env's reference by one frame;
 4. time-out (episode length) and, with ``on_clip_end: truncate``, clip end truncate; with
    ``on_clip_end: resample`` an env past its clip's end is re-started (robot reset onto a newly
-   sampled frame) without ending the episode (RL_SPEC §2);
+   sampled frame) without ending the episode (docs/environment.md §2);
 5. with ``autoreset`` (vector env, same-step mode) finished envs are reset in the same call;
 6. observations of the new state.
 
@@ -174,7 +174,8 @@ class TrackingTask:
         if self.autoreset:
             if self.cfg.final_obs:
                 final = self.observations(self._build_state())
-                extras["final_obs"] = {g: torch.nan_to_num(o, nan=0.0, posinf=0.0, neginf=0.0) for g, o in final.items()}
+                extras["final_obs"] = {g: torch.nan_to_num(o, nan=0.0, posinf=0.0, neginf=0.0)
+                                       for g, o in final.items()}
                 extras["_final_obs"] = done
             restart = restart | done
         self._restart(restart)

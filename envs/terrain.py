@@ -31,7 +31,7 @@ refused: its robot could wander onto it.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +41,7 @@ import numpy as np
 from envs.collision import BoxShape, CollisionShape, CollisionShapeError, collision_shapes, load_mesh
 from envs.config import SimCfg, TerrainCfg
 from envs.objects import GROUND_GEOM
-from otr_gym.reference import InvalidReferenceError, Reference, clip_entries
+from otr_gym.reference import ClipEntry, InvalidReferenceError, Reference
 from otr_gym.rotations import quat_to_matrix
 
 BODY_PREFIX = "terrain/"
@@ -127,16 +127,22 @@ def clip_matches(key: str, source: str) -> bool:
     return 0 < len(key_parts) <= len(clip_parts) and clip_parts[-len(key_parts):] == key_parts
 
 
-def terrain_meshes(meshes: Mapping[str, str], source=None) -> dict[str, str]:
-    """``meshes`` (clip key -> mesh) with the ``terrain=`` options of the clip lists in
-    ``source`` (paths, or Reference objects that name none) added, every mesh path absolute.
+def terrain_meshes(meshes: Mapping[str, str], listed: Mapping[str, str] | None = None) -> dict[str, str]:
+    """``meshes`` (clip key -> mesh, ``TerrainCfg.meshes``) with ``listed`` (clip path -> mesh:
+    the ``terrain=`` options of clip lists, ``listed_terrain``) added, every mesh path absolute.
     A clip given two different meshes raises naming both."""
     out = {key: os.path.abspath(Path(mesh).expanduser()) for key, mesh in meshes.items()}
-    for key, mesh in _clip_list_terrain(source).items():
+    for key, mesh in (listed or {}).items():
         if key in out and out[key] != mesh:
             raise InvalidReferenceError(f"{key}: terrain {mesh} (clip list) differs from {out[key]} (terrain.meshes)")
         out[key] = mesh
     return out
+
+
+def listed_terrain(entries: Iterable[ClipEntry]) -> dict[str, str]:
+    """{clip path: absolute mesh path} of the ``terrain=`` options of clip-list entries
+    (``otr_gym.reference.clip_entries``: whoever expands the clip lists reads them, once)."""
+    return {str(e.path): os.path.abspath(e.terrain) for e in entries if e.terrain is not None}
 
 
 def meshes_for_clips(meshes: Mapping[str, str], sources: Sequence[str]) -> dict[str, str]:
@@ -169,18 +175,6 @@ def place_terrain(refs: Sequence[Reference], cfg: TerrainCfg,
     scene = SceneTerrain(tuple(terrains), origins)
     _check_reach(placed, scene, cfg)
     return placed, scene
-
-
-def _clip_list_terrain(source) -> dict[str, str]:
-    """{clip path: absolute mesh path} of the ``terrain=`` options in the clip lists of ``source``."""
-    if source is None or isinstance(source, Reference):
-        return {}
-    if isinstance(source, (str, Path)):
-        return {str(e.path): os.path.abspath(e.terrain) for e in clip_entries(source) if e.terrain is not None}
-    out: dict[str, str] = {}
-    for item in source:
-        out.update(_clip_list_terrain(item))
-    return out
 
 
 def _mesh_of_clip(meshes: Mapping[str, str], sources: Sequence[str]) -> dict[int, str]:

@@ -1,4 +1,4 @@
-"""OTR-G1-Track-v0: whole-body motion tracking of the 29-DoF Unitree G1 (docs/RL_SPEC.md).
+"""OTR-G1-Track-v0: whole-body motion tracking of the 29-DoF Unitree G1 (docs/environment.md).
 
 Two front-ends on one batched MDP (``envs.task.TrackingTask``)::
 
@@ -20,15 +20,16 @@ with ``cfg.final_obs``, ``info["final_obs"]`` holds the last one (rows where
 ``info["_final_obs"]``).
 
 Common keyword arguments: ``reference`` (file, folder of ``*.npz`` = multi-clip library,
-``Reference`` or list of them; resampled to 50 fps; bad files raise
-``InvalidReferenceError`` naming the file), ``cfg`` (``TrackEnvCfg``, YAML path or None for
+clip list, ``Reference`` or list of them; resampled to 50 fps; bad files raise
+``InvalidReferenceError`` naming the file; or ``PreparedClips``, a library read and prepared
+once by ``envs.clips.prepare_clips`` or ``agents.library``), ``cfg`` (``TrackEnvCfg``, YAML path or None for
 ``configs/env/track.yaml``; ``cfg.terrain`` gives clips a terrain mesh, as do ``terrain=``
 options in clip lists: ``envs.terrain``), ``evaluation`` (True: no randomisation, no noise,
 every clip from frame 0, the episode ends with the clip), ``seed``.
 
 Spaces: observation ``Dict(policy=Box(154), critic=Box(286))`` float32 clipped to ±100
-(RL_SPEC §3; layout in ``obs_layout``); action ``Box(29)`` in [−100, 100], joint order
-``otr_gym.robot.JOINT_NAMES``; the PD target is q_default + ACTION_SCALE·a (RL_SPEC §1).
+(docs/environment.md §3; layout in ``obs_layout``); action ``Box(29)`` in [−100, 100], joint order
+``otr_gym.robot.JOINT_NAMES``; the PD target is q_default + ACTION_SCALE·a (docs/environment.md §1).
 
 Interface for training / evaluation / export (vector env):
 
@@ -54,6 +55,7 @@ Interface for training / evaluation / export (vector env):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import gymnasium as gym
@@ -64,15 +66,16 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from envs.backends import build_sim_model, make_backend
+from envs.clips import PreparedClips, placed_clips
 from envs.config import TrackEnvCfg, load_track_config
-from envs.mdp.motion import MotionLibrary, ReferenceSource, prepared_references
+from envs.mdp.motion import MotionLibrary, ReferenceSource
 from envs.task import TrackingTask
-from envs.terrain import contact_buffers, place_terrain, terrain_meshes
+from envs.terrain import contact_buffers
 
 _PER_WORLD_FIELDS = ("geom_friction", "body_ipos")  # randomised per env (§6)
 
 
-def make_task(reference: ReferenceSource, num_envs: int, backend: str, device: str,
+def make_task(reference: ReferenceSource | PreparedClips, num_envs: int, backend: str, device: str,
               cfg: TrackEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0,
               autoreset: bool = True) -> TrackingTask:
     """Load the references (failing fast on bad ones), build the backend and the MDP."""
@@ -80,8 +83,7 @@ def make_task(reference: ReferenceSource, num_envs: int, backend: str, device: s
         cfg = load_track_config(cfg)
     if evaluation:
         cfg = cfg.for_evaluation()
-    refs = prepared_references(reference, cfg.command.tracked_bodies, cfg.command.fps, cfg.command.min_clip_frames)
-    refs, terrain = place_terrain(refs, cfg.terrain, terrain_meshes(cfg.terrain.meshes, reference))
+    refs, terrain = placed_clips(reference, cfg)
     motion = MotionLibrary.from_references(refs, cfg.command.tracked_bodies, cfg.command.fps)
     model = build_sim_model(cfg.sim.contact_bodies, terrain=terrain)
     physics = make_backend(backend, model, num_envs, device, cfg.sim.decimation, cfg.sim.contact_bodies,
@@ -104,9 +106,10 @@ class TrackEnv(gym.Env):
     """One tracking env on CPU MuJoCo (Gymnasium single-env API, NumPy arrays)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 50}
-    make_task = staticmethod(make_task)
+    #: builds the batched MDP; a task's env class names its own (``envs.box``)
+    make_task: Callable[..., TrackingTask] = staticmethod(make_task)
 
-    def __init__(self, reference: ReferenceSource, render_mode: str | None = None,
+    def __init__(self, reference: ReferenceSource | PreparedClips, render_mode: str | None = None,
                  cfg: TrackEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0,
                  width: int = 640, height: int = 480):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -169,10 +172,11 @@ class TrackVecEnv(VectorEnv):
     """N tracking envs on one device (torch in/out, same-step autoreset). See the module docstring."""
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
-    make_task = staticmethod(make_task)
+    make_task: Callable[..., TrackingTask] = staticmethod(make_task)
 
-    def __init__(self, num_envs: int, reference: ReferenceSource, device: str = "cuda", backend: str = "warp",
-                 cfg: TrackEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0):
+    def __init__(self, num_envs: int, reference: ReferenceSource | PreparedClips, device: str = "cuda",
+                 backend: str = "warp", cfg: TrackEnvCfg | str | Path | None = None, evaluation: bool = False,
+                 seed: int = 0):
         self.task = self.make_task(reference, num_envs, backend, device, cfg, evaluation, seed, autoreset=True)
         self.num_envs = num_envs
         self.device = self.task.device

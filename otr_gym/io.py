@@ -1,4 +1,5 @@
-"""Atomic file output: every file we write appears whole under its final name or not at all.
+"""Atomic file output: every file we write appears whole under its final name or not at all;
+and the one safe ``.npz`` reader (``load_npz``) every file reader uses.
 
 A writer gets a temporary file in the destination folder (same file system, so the final
 ``os.replace`` is atomic); on success it is renamed onto the destination, on any exception
@@ -12,9 +13,11 @@ import json
 import os
 import tempfile
 import zipfile
+import zlib
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import IO, Any
 
 import numpy as np
 
@@ -38,7 +41,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
-def atomic_write(path: str | Path, write: Callable[[object], None], binary: bool = True) -> Path:
+def atomic_write(path: str | Path, write: Callable[[IO[Any]], object], binary: bool = True) -> Path:
     """Call ``write(file)`` on a temporary file next to ``path``, fsync, then rename it onto ``path``."""
     with atomic_path(path) as tmp, open(tmp, "wb" if binary else "w", encoding=None if binary else "utf-8") as f:
         write(f)
@@ -70,6 +73,83 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compressed: bool =
     """An ``.npz`` file written atomically and reproducibly (``npz_bytes``)."""
     data = npz_bytes(arrays, compressed)
     return atomic_write(path, lambda f: f.write(data))
+
+
+class NpzError(ValueError):
+    """A file that is not a readable NumPy ``.npz`` archive; the message names the file and the problem."""
+
+
+#: First bytes of a zip archive (a local file header, or the end record of an empty archive).
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")
+
+
+def _first_bytes(head: bytes) -> str:
+    """What the first bytes of a file say it is, for an error message."""
+    if head.startswith(b"\x93NUMPY"):
+        return "a single-array .npy file"
+    if head[:1] == b"\x80":
+        return "starts like a Python pickle"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        return f"starts with the bytes {head[:8]!r}"
+    if all(c.isprintable() or c.isspace() for c in text):
+        return f"starts with the text {text.strip()[:24]!r}"
+    return f"starts with the bytes {head[:8]!r}"
+
+
+def check_npz(path: str | Path) -> Path:
+    """``path`` if it looks like an ``.npz`` archive (a non-empty file starting as a zip archive);
+    FileNotFoundError or NpzError naming the file and the problem otherwise."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(32)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise NpzError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    if not head:
+        raise NpzError(f"{path}: empty file (0 bytes), not a NumPy .npz archive")
+    if not head.startswith(_ZIP_MAGIC):
+        raise NpzError(f"{path}: not a NumPy .npz archive ({_first_bytes(head)})")
+    return path
+
+
+def _open_npz(path: Path):
+    """``np.load`` of a checked archive (a context manager), never unpickling; zip-level failures as NpzError."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except (zipfile.BadZipFile, EOFError, OSError) as exc:
+        # a zip archive cut short loses its central directory at the end: "File is not a zip file"
+        raise NpzError(f"{path}: not a NumPy .npz archive (truncated or not a zip archive: {exc})") from exc
+
+
+def npz_keys(path: str | Path) -> tuple[str, ...]:
+    """The array names in an ``.npz`` file, without reading the arrays (``load_npz``'s errors)."""
+    path = check_npz(path)
+    with _open_npz(path) as npz:
+        return tuple(npz.files)
+
+
+def load_npz(path: str | Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz`` file, read safely: object (pickled) members are refused, never
+    unpickled. FileNotFoundError for a missing file; NpzError naming the file and the problem
+    (empty, not an archive, truncated, a damaged or object member) for anything else."""
+    path = check_npz(path)
+    out = {}
+    with _open_npz(path) as npz:
+        for key in npz.files:
+            try:
+                out[key] = npz[key]
+            except ValueError as exc:
+                if "pickle" in str(exc):  # numpy's advice here is to unpickle: not for files we did not write
+                    raise NpzError(f"{path}: member {key!r} holds Python objects (pickled data); only plain "
+                                   f"arrays are read from .npz files") from None
+                raise NpzError(f"{path}: member {key!r} is not a readable array ({exc})") from exc
+            except (zipfile.BadZipFile, EOFError, OSError, zlib.error) as exc:
+                raise NpzError(f"{path}: member {key!r} is damaged ({exc})") from exc
+    return out
 
 
 def save_figure(fig, path: str | Path, dpi: int = 110) -> Path:

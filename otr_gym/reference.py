@@ -36,14 +36,13 @@ read too. Saving is atomic (temporary file + rename).
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from otr_gym import robot
-from otr_gym.io import save_npz
+from otr_gym.io import NpzError, load_npz, save_npz
 from otr_gym.rotations import (
     angular_velocity_from_quats,
     linear_velocity_from_positions,
@@ -316,7 +315,8 @@ class Reference:
             for key, shape in (("pos_w", (T, 3)), ("quat_w", (T, 4)), ("lin_vel_w", (T, 3)), ("ang_vel_w", (T, 3))):
                 arr = getattr(o, key)
                 if arr.shape != shape:
-                    raise InvalidReferenceError(f"{src}: object '{o.name}' {key} has shape {arr.shape}, expected {shape}")
+                    raise InvalidReferenceError(f"{src}: object '{o.name}' {key} has shape {arr.shape}, "
+                                                f"expected {shape}")
                 _check_finite(src, f"object '{o.name}' {key}", arr)
             _check_unit(src, f"object '{o.name}' quat_w", o.quat_w)
         if self.contacts is not None:
@@ -381,10 +381,9 @@ class Reference:
         if not path.is_file():
             raise InvalidReferenceError(f"{path}: no such reference file")
         try:
-            with np.load(path, allow_pickle=False) as npz:
-                data = {k: npz[k] for k in npz.files}
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-            raise InvalidReferenceError(f"{path}: not a readable .npz reference ({exc})") from exc
+            data = load_npz(path)
+        except (NpzError, OSError) as exc:  # the message names the file and the problem
+            raise InvalidReferenceError(str(exc)) from exc
         return cls.from_arrays(data, source=str(path))
 
     @classmethod
@@ -455,7 +454,8 @@ class Reference:
 
 def _objects_from_arrays(data, body_names, source) -> list[ObjectTrack]:
     if "objects_pos_w" in data:
-        names = [str(n) for n in data.get("object_names", [f"object{i}" for i in range(data["objects_pos_w"].shape[1])])]
+        names = [str(n) for n in data.get("object_names",
+                                          [f"object{i}" for i in range(data["objects_pos_w"].shape[1])])]
         out = []
         for i, name in enumerate(names):
             out.append(ObjectTrack(

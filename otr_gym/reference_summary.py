@@ -7,19 +7,24 @@ from pathlib import Path
 
 import numpy as np
 
+from otr_gym.io import NpzError, npz_keys
 from otr_gym.reference import Reference
 
 #: Contact distance (m) under which a body counts as touching a channel: the paper's ε_eval.
 CONTACT_EPS_M = 0.02
 
 
+def has_reference_keys(keys) -> bool:
+    """Whether an .npz file's array names are those of a reference (any supported layout)."""
+    return "joint_pos" in keys and "body_pos_w" in keys
+
+
 def is_reference_file(path: Path) -> bool:
     if path.suffix != ".npz":
         return False
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return "joint_pos" in npz.files and "body_pos_w" in npz.files
-    except (OSError, ValueError):
+        return has_reference_keys(npz_keys(path))
+    except (NpzError, OSError):
         return False
 
 

@@ -79,7 +79,8 @@ class SceneRenderer:
         self.camera = camera
         self.size = (height, width)
 
-    def render(self, frames, robot_qpos: np.ndarray | None = None, follow: np.ndarray | None = None) -> list[np.ndarray]:
+    def render(self, frames, robot_qpos: np.ndarray | None = None,
+               follow: np.ndarray | None = None) -> list[np.ndarray]:
         """RGB images (H, W, 3) at ``frames``; ``robot_qpos`` (T, 36) poses the G1; the camera
         looks at ``follow`` (T, 3) when given, else at the robot root or the first track."""
         cam = mujoco.MjvCamera()

@@ -3,7 +3,7 @@
 Joint order is the MJCF depth-first order, which equals the motor index order of the
 low-level interface (``unitree_hg`` LowCmd/LowState, slots 0..28; slots 29..34 unused).
 
-PD gains follow the mjlab derivation (RL_SPEC §1): kp = J·ω², kd = 2ζ·J·ω with
+PD gains follow the mjlab derivation (docs/environment.md §1): kp = J·ω², kd = 2ζ·J·ω with
 ω = 2π·10 rad/s, ζ = 2, where J is the reflected inertia of the motor's two-stage
 planetary gearbox, J = I₁(g₂g₃)² + I₂g₃² + I₃. The ankle and waist roll/pitch joints are
 4-bar linkages driven by two 5020 motors, so their kp, kd, effort and armature are doubled.
@@ -51,7 +51,7 @@ BODY_NAMES: tuple[str, ...] = (
 
 ROOT_BODY = "pelvis"
 ANCHOR_BODY = "torso_link"
-#: The 14 bodies tracked by rewards and MPJPE (RL_SPEC §2, paper Sec. IV-E).
+#: The 14 bodies tracked by rewards and MPJPE (docs/environment.md §2, paper Sec. IV-E).
 TRACKED_BODIES: tuple[str, ...] = (
     "pelvis",
     "left_hip_roll_link", "right_hip_roll_link",
@@ -65,7 +65,7 @@ TRACKED_BODIES: tuple[str, ...] = (
 FEET: tuple[str, str] = ("left_ankle_roll_link", "right_ankle_roll_link")
 HANDS: tuple[str, str] = ("left_wrist_yaw_link", "right_wrist_yaw_link")
 END_EFFECTORS: tuple[str, ...] = FEET + HANDS
-#: Height of the G1 standing upright (m); used for the scaled ablation (METHOD.md, Modes).
+#: Height of the G1 standing upright (m); used for the scaled ablation (docs/method.md "Modes").
 HEIGHT_M = 1.32
 #: Root height of the default ("knees bent") standing pose (m).
 DEFAULT_ROOT_HEIGHT_M = 0.76
@@ -181,7 +181,7 @@ NUM_MOTOR_SLOTS = 35
 
 
 def soft_joint_limits(factor: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
-    """Limits shrunk about their midpoint to ``factor`` of the range (RL_SPEC §4: 90 %)."""
+    """Limits shrunk about their midpoint to ``factor`` of the range (docs/environment.md §4: 90 %)."""
     mid, half = 0.5 * (JOINT_UPPER + JOINT_LOWER), 0.5 * (JOINT_UPPER - JOINT_LOWER)
     return mid - factor * half, mid + factor * half
 

@@ -15,7 +15,7 @@ import numpy as np
 try:
     import torch
 except ImportError:  # pragma: no cover - torch is a hard dependency, kept optional here
-    torch = None
+    torch = None  # type: ignore[assignment]
 
 
 def _is_torch(x) -> bool:
@@ -187,10 +187,14 @@ def matrix_to_quat(m):
         return out.reshape(*m.shape[:-2], 4)
     m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
     candidates = _stack([
-        _stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]]),
-        _stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22, m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]]),
-        _stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1], 1 - m00 + m11 - m22, m[..., 2, 1] + m[..., 1, 2]]),
-        _stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0], m[..., 2, 1] + m[..., 1, 2], 1 - m00 - m11 + m22]),
+        _stack([1 + m00 + m11 + m22, m[..., 2, 1] - m[..., 1, 2],
+                m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]]),
+        _stack([m[..., 2, 1] - m[..., 1, 2], 1 + m00 - m11 - m22,
+                m[..., 1, 0] + m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0]]),
+        _stack([m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] + m[..., 0, 1],
+                1 - m00 + m11 - m22, m[..., 2, 1] + m[..., 1, 2]]),
+        _stack([m[..., 1, 0] - m[..., 0, 1], m[..., 0, 2] + m[..., 2, 0],
+                m[..., 2, 1] + m[..., 1, 2], 1 - m00 - m11 + m22]),
     ], axis=-2)  # (…, 4 candidates, 4)
     diag = _stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22])
     if _is_torch(m):
@@ -339,10 +343,8 @@ def angular_velocity_from_quats(q, dt: float):
     if q.shape[0] < 2:
         return 0 * q[..., 1:]
     fwd = quat_to_rotvec(quat_mul(q[1:], quat_conj(q[:-1]))) / dt  # (T-1, …, 3)
-    if _is_torch(q):
-        out = torch.empty(*q.shape[:-1], 3, dtype=q.dtype, device=q.device)
-    else:
-        out = np.empty((*q.shape[:-1], 3))
+    out = (torch.empty(*q.shape[:-1], 3, dtype=q.dtype, device=q.device) if _is_torch(q)
+           else np.empty((*q.shape[:-1], 3)))
     out[0], out[-1] = fwd[0], fwd[-1]
     if q.shape[0] > 2:
         out[1:-1] = quat_to_rotvec(quat_mul(q[2:], quat_conj(q[:-2]))) / (2 * dt)

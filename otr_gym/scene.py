@@ -104,10 +104,11 @@ def _add_object(spec: mujoco.MjSpec, obj: ObjectSpec) -> None:
         if obj.vertices is not None:
             mesh = trimesh.Trimesh(np.asarray(obj.vertices), np.asarray(obj.faces), process=False)
         else:
+            assert obj.mesh is not None  # checked above: a mesh file or vertices
             path = Path(obj.mesh)
             if not path.is_file():
                 raise FileNotFoundError(f"{path}: object mesh for '{obj.name}' not found")
-            mesh = trimesh.load(path, force="mesh", process=False)
+            mesh = trimesh.load(path, force="mesh", process=False)  # type: ignore[assignment]
         if len(mesh.faces) > 2000:  # MuJoCo collides with the convex hull; keep the visual light
             mesh = mesh.convex_hull
         spec.add_mesh(name=f"{obj.name}_mesh", uservert=np.asarray(mesh.vertices, np.float64).ravel().tolist(),

@@ -95,7 +95,7 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
                                    angular_velocity_from_quats(quat, dt), src.vertices, src.faces))
     contacts = ContactAnnotations(BODY_NAMES, tuple(t.name for t in problem.channels), sol.contacts, sol.witness_c)
     iterations = np.array([s.iterations for s in sol.stats])
-    rows = np.concatenate([s.qp_rows for s in sol.stats if s.qp_rows] or [np.zeros(1)])
+    rows = np.concatenate([np.asarray(s.qp_rows) for s in sol.stats if s.qp_rows] or [np.zeros(1)])
     metadata = {
         "generator": "otr-gym retarget (OTRetarget)",
         "mode": cfg.mode, "scale": mode_scale(demo, cfg.mode), "fps": demo.fps,

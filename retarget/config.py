@@ -21,14 +21,13 @@ from retarget.solver.residuals import InteractionConfig
 from retarget.solver.stance import StanceConfig
 from retarget.solver.style import StyleConfig
 
-
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "retarget"
 
 @dataclass(frozen=True)
 class RetargetConfig:
     """Everything ``retarget.clip.retarget_demonstration`` needs; mirrored by configs/retarget/default.yaml."""
 
-    #: native | scaled | robot-only (METHOD.md "Modes").
+    #: native | scaled | robot-only (docs/method.md "Modes").
     mode: str = "native"
     #: Rate the demonstration is resampled to and solved at (Hz); None keeps the demonstration's.
     fps: float | None = 50.0

@@ -69,12 +69,13 @@ def shared_data() -> Path:
 def largebox_reference(shared_data, tmp_path_factory) -> Path:
     """Our reference of OMOMO sub3_largebox_003 (native scale, box free), retargeted once per
     session (~30 s on one core) by this commit's code."""
-    from retarget.inputs.readers import load_demonstration
     from retarget.clip import retarget_demonstration
     from retarget.config import RetargetConfig
+    from retarget.inputs.readers import load_demonstration
 
     demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
-    return retarget_demonstration(demo, RetargetConfig()).save(tmp_path_factory.mktemp("refs") / "sub3_largebox_003.npz")
+    return retarget_demonstration(demo, RetargetConfig()).save(
+        tmp_path_factory.mktemp("refs") / "sub3_largebox_003.npz")
 
 
 # ------------------------------------------------------------------ generated G1 references

@@ -13,12 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from otr_gym import robot
-
 from agents.deploy import safety
 from agents.deploy.messages import REMOTE_KEYS, JointCommand, RobotState
 from agents.deploy.observation import ObservationBuilder, PolicySpec, torso_tilt_rad
 from agents.deploy.safety import DampReason, SafetyCfg, Stage, StageMachine
+from otr_gym import robot
 
 #: Operator key bits (keyboard events and the remote's buttons map onto these).
 KEY_START = 1

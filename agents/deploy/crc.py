@@ -1,4 +1,4 @@
-"""The CRC-32 that Unitree's G1 firmware checks on LowCmd (and sets on LowState), RL_SPEC §9.
+"""The CRC-32 that Unitree's G1 firmware checks on LowCmd (and sets on LowState), docs/environment.md §9.
 
 The message is packed as the little-endian C struct (natural alignment: 1004 bytes for
 LowCmd, 2092 for LowState; *not* the CDR wire bytes), read as 32-bit little-endian words, and
@@ -21,7 +21,7 @@ import numpy as np
 from agents.deploy.messages import NUM_MOTORS, LowCmd_, LowState_, low_state_fields
 
 POLYNOMIAL = 0x04C11DB7
-#: C-struct packing (RL_SPEC §9): header, 35 motor records, reserve + crc.
+#: C-struct packing (docs/environment.md §9): header, 35 motor records, reserve + crc.
 LOWCMD_FORMAT = "<2B2x" + "B3x5fI" * NUM_MOTORS + "5I"
 LOWSTATE_FORMAT = "<2I2B2xI" + "13fh2x" + "B3x4f2hf7I" * NUM_MOTORS + "40B5I"
 LOWCMD_PACKED_BYTES = struct.calcsize(LOWCMD_FORMAT)  # 1004

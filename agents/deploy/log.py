@@ -26,15 +26,29 @@ from pathlib import Path
 
 import numpy as np
 
-from otr_gym import robot
-from otr_gym.io import save_npz
-
 from agents.deploy.controller import CycleInput, CycleOutput
 from agents.deploy.messages import RobotState
 from agents.deploy.safety import Stage, Transition
+from otr_gym import robot
+from otr_gym.io import load_npz, save_npz
 
 FORMAT = "otr-gym-deploy-log/1"
 NS = 1_000_000_000
+#: Arrays that tell a deploy log from the other ``.npz`` files ``otr inspect`` reads.
+LOG_KEYS = ("meta", "wake_ns")
+
+
+def log_file(path: str | Path) -> Path:
+    """Where a log asked for at ``path`` is written: ``path`` with ``.npz`` appended unless it
+    already ends in it (``--log run`` writes ``run.npz``, as ``np.savez`` would), so that the
+    suffix says what the file is to ``otr inspect`` and to a reader of the folder."""
+    path = Path(path)
+    return path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+
+
+def is_deploy_log(keys) -> bool:
+    """Whether an .npz file's array names are those of a deploy log."""
+    return all(k in keys for k in LOG_KEYS)
 
 
 def file_sha256(path: str | Path) -> str:
@@ -92,13 +106,14 @@ class CycleLog:
         self.n += 1
 
     def save(self, path: str | Path, transitions: list[Transition]) -> Path:
+        """Write the log atomically to ``log_file(path)`` (``.npz`` appended when missing); returns where."""
         arrays = {k: v[: self.n] for k, v in self._arrays.items()}
         arrays["transition_cycle"] = np.array([t.cycle for t in transitions], dtype=np.int64)
         arrays["transition_from"] = np.array([int(t.source) for t in transitions], dtype=np.int8)
         arrays["transition_to"] = np.array([int(t.target) for t in transitions], dtype=np.int8)
         arrays["transition_reason"] = np.array([t.reason for t in transitions], dtype=str)
         arrays["meta"] = np.array(json.dumps(self.meta))
-        return save_npz(path, arrays)
+        return save_npz(log_file(path), arrays)
 
 
 @dataclass
@@ -110,14 +125,18 @@ class DeployLog:
     @classmethod
     def load(cls, path: str | Path) -> DeployLog:
         path = Path(path)
+        if not path.is_file() and log_file(path).is_file():  # ``--log run`` wrote run.npz
+            path = log_file(path)
         if not path.is_file():
             raise FileNotFoundError(f"{path}: deploy log not found")
         try:
-            with np.load(path, allow_pickle=False) as npz:
-                arrays = {k: npz[k] for k in npz.files}
-            meta = json.loads(str(arrays.pop("meta")))
-        except (OSError, ValueError, KeyError) as exc:
+            arrays = load_npz(path)  # NpzError (a ValueError) names the file and the problem
+        except OSError as exc:
             raise ValueError(f"{path}: not a readable deploy log ({exc})") from exc
+        try:
+            meta = json.loads(str(arrays.pop("meta")))
+        except (KeyError, ValueError) as exc:
+            raise ValueError(f"{path}: not a readable deploy log (its 'meta' JSON: {exc})") from exc
         if meta.get("format") != FORMAT:
             raise ValueError(f"{path}: format {meta.get('format')!r}, expected {FORMAT!r}")
         return cls(path, arrays, meta)

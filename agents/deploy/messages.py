@@ -1,4 +1,4 @@
-"""The ``unitree_hg`` low-level messages of the G1 (RL_SPEC §9), as CycloneDDS IDL structs.
+"""The ``unitree_hg`` low-level messages of the G1 (docs/environment.md §9), as CycloneDDS IDL structs.
 
 Our own definitions of Unitree's ``unitree_hg::msg::dds_`` types: same DDS type names, field
 order, field types and array sizes as the IDL shipped with Unitree SDK2 (``LowCmd_.idl``,
@@ -36,7 +36,7 @@ WIRELESS_REMOTE_BYTES = 40
 TOPIC_LOWSTATE = "rt/lowstate"
 TOPIC_LOWCMD = "rt/lowcmd"
 
-#: LowCmd mode fields used on the G1 (RL_SPEC §9): pitch/roll ankle mode, motors enabled.
+#: LowCmd mode fields used on the G1 (docs/environment.md §9): pitch/roll ankle mode, motors enabled.
 MODE_PR = 0
 MOTOR_MODE_ENABLE = 1
 

@@ -21,7 +21,7 @@ What the robot measures and how it maps onto the training state:
 Reference timing follows training (``envs.mdp.commands``): the robot stands on start frame 0,
 the observation shows target frame 1, and every policy step advances the target by one frame.
 
-Yaw alignment at policy start (RL_SPEC §9): the IMU's heading is arbitrary, so when tracking
+Yaw alignment at policy start (docs/environment.md §9): the IMU's heading is arbitrary, so when tracking
 starts the heading difference Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) is recorded, and the
 whole clip is rotated by Δ about the world z axis (``otr_gym.rotations``, the same maths as
 ``envs.mdp.state.aligned_targets``). In training the robot starts on its reference, so Δ ≈ 0
@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from agents.deploy.messages import RobotState
 from envs.mdp import observations as obs_terms
 from envs.mdp.metrics import mpjpe_root_relative
 from envs.mdp.motion import MotionLibrary
@@ -43,8 +44,6 @@ from envs.mdp.state import TrackingState
 from otr_gym import robot
 from otr_gym.rotations import quat_apply, quat_conj, quat_mul, quat_to_matrix, quat_yaw
 from otr_gym.scene import robot_model
-
-from agents.deploy.messages import RobotState
 
 #: Terms that need what the G1's low-level state does not give.
 UNOBSERVABLE_TERMS = {

@@ -10,9 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from otr_gym import robot
-
 from agents.deploy.observation import PolicySpec, PolicySpecError
+from otr_gym import robot
 
 
 class OnnxPolicy:

@@ -1,6 +1,6 @@
 """A stand-in policy for sim2sim before a trained one is at hand: it plays the reference.
 
-``python -m agents.deploy.reference_policy policy.onnx`` writes an ONNX graph with the same
+``otr reference-policy policy.onnx`` writes an ONNX graph with the same
 input, output and metadata as ``otr export --onnx`` (the observation layout of the training
 env's default actor, built by that env), whose action is the reference's joint targets read
 from the observation's ``command`` term: a = (q_ref − q_default) / action_scale. It therefore
@@ -8,8 +8,8 @@ flows through the deployment runner unchanged (observation rebuild, clip, soft l
 
 It is open loop: nothing in it balances. With the training gains (kp = J·ω², ω = 2π·10 rad/s)
 an open-loop pose topples in about 1.3 s (``tests/test_env_tracking.py``), so its metadata
-carries the stiff start-up gains of RL_SPEC §9 instead; with them the G1 follows references
-that keep both feet on the ground (``python -m agents.procedural sway``), not a walk.
+carries the stiff start-up gains of docs/environment.md §9 instead; with them the G1 follows references
+that keep both feet on the ground (``otr procedural sway``), not a walk.
 """
 
 from __future__ import annotations
@@ -24,11 +24,10 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper
 
-from otr_gym import robot
-from otr_gym.io import atomic_path
-
 from agents.deploy.safety import STARTUP_KD, STARTUP_KP
 from agents.export import FORMAT, OPSET
+from otr_gym import robot
+from otr_gym.io import atomic_path
 
 
 def training_metadata(reference) -> dict:
@@ -91,26 +90,25 @@ def write_reference_policy(out: str | Path, reference) -> Path:
     return Path(out)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m agents.deploy.reference_policy",
-                                     description=__doc__.split("\n")[0])
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr reference-policy``'s arguments."""
     parser.add_argument("out", help="output .onnx (written atomically)")
     parser.add_argument("--reference", default=None,
                         help="reference whose env builds the observation layout (default: a generated standing clip)")
-    args = parser.parse_args(argv)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``otr reference-policy OUT``: write the stand-in policy; a reference that cannot be read or an
+    output that cannot be written: a message naming it, exit code 2."""
     reference = args.reference
     if reference is None:
         from agents.procedural import standing_reference
 
-        reference = standing_reference(2.0)
+        reference = standing_reference()
     try:
         path = write_reference_policy(args.out, reference)
     except (OSError, ValueError) as exc:
-        print(f"reference_policy: {exc}", file=sys.stderr)
+        print(f"otr reference-policy: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {path}: obs -> (q_ref − q_default)/scale, start-up gains")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -25,7 +25,7 @@ import numpy as np
 
 from agents.deploy import crc
 from agents.deploy.controller import KEY_ESTOP, KEY_START, KEY_STOP, Controller, ControllerCfg, CycleInput
-from agents.deploy.log import NS, CycleLog, DeployLog, file_sha256
+from agents.deploy.log import NS, CycleLog, DeployLog, file_sha256, log_file
 from agents.deploy.messages import low_cmd, robot_state
 from agents.deploy.observation import ObservationBuilder, PolicySpec, PolicySpecError
 from agents.deploy.onnx_policy import OnnxPolicy
@@ -222,23 +222,28 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", default=None,
                    help="network interface to the robot (e.g. eth0; lo for sim2sim with `otr sim-robot`); "
                         "default: CycloneDDS picks one")
-    p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0)")
+    p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0; default: %(default)s)")
     p.add_argument("--log", type=Path, default=None,
                    help="cycle log .npz (default deploy_logs/<policy>_<time>.npz); see `otr inspect`")
     p.add_argument("--auto-start", action="store_true", help="track as soon as the ramp ends (no operator)")
-    p.add_argument("--duration", type=float, default=None, help="stop tracking (damp) after this many seconds")
-    p.add_argument("--ramp", type=float, default=SafetyCfg.ramp_s, help="start-up ramp to the default pose (s)")
+    p.add_argument("--duration", type=float, default=None,
+                   help="stop tracking (damp) after this many seconds (default: no limit)")
+    p.add_argument("--ramp", type=float, default=SafetyCfg.ramp_s,
+                   help="start-up ramp to the default pose (s; default: %(default)s)")
     p.add_argument("--tilt-limit", type=float, default=float(np.degrees(SafetyCfg.tilt_limit_rad)),
-                   help="damp when the torso tilts more than this from vertical (degrees)")
+                   help="damp when the torso tilts more than this from vertical (degrees; default: %(default).1f)")
     p.add_argument("--stale-cycles", type=int, default=SafetyCfg.stale_cycles,
-                   help="damp after this many cycles without a new LowState")
+                   help="damp after this many control cycles without a new LowState (default: %(default)s)")
     p.add_argument("--soft-limit-factor", type=float, default=SafetyCfg.soft_limit_factor,
-                   help="joint targets clamped to this fraction of each joint's range")
-    p.add_argument("--damp-s", type=float, default=2.0, help="keep sending damping this long, then exit (s)")
-    p.add_argument("--spin-us", type=float, default=500.0, help="spin (instead of sleep) this long before a deadline")
+                   help="joint targets clamped to this fraction of each joint's range (default: %(default)s)")
+    p.add_argument("--damp-s", type=float, default=2.0,
+                   help="keep sending damping this long, then exit (s; default: %(default)s)")
+    p.add_argument("--spin-us", type=float, default=500.0,
+                   help="spin (instead of sleep) this long before a deadline (µs; default: %(default)s)")
     p.add_argument("--rt-priority", type=int, default=0,
-                   help="run the loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling)")
-    p.add_argument("--wait-timeout", type=float, default=30.0, help="give up when no LowState arrives in this time (s)")
+                   help="run the loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling; default: %(default)s)")
+    p.add_argument("--wait-timeout", type=float, default=30.0,
+                   help="give up when no LowState arrives in this time (s; default: %(default)s)")
     p.add_argument("--replay", type=Path, default=None,
                    help="re-run this log offline through the same controller and compare the actions")
 
@@ -261,9 +266,9 @@ def main(args: argparse.Namespace) -> int:
     if args.policy is None:
         print("otr deploy: --policy is required (or --replay LOG)", file=sys.stderr)
         return 2
-    from agents.deploy.dds import TransportError
-
     import torch
+
+    from agents.deploy.dds import TransportError
 
     torch.set_num_threads(1)
     try:
@@ -288,7 +293,9 @@ def main(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError, PolicySpecError, TransportError, PermissionError) as exc:
         print(f"otr deploy: {exc}", file=sys.stderr)
         return 2
-    log_path = args.log or Path("deploy_logs") / f"{args.policy.stem}_{time.strftime('%Y%m%d-%H%M%S')}.npz"
+    log_path = log_file(args.log or Path("deploy_logs") / f"{args.policy.stem}_{time.strftime('%Y%m%d-%H%M%S')}.npz")
+    if args.log is not None and log_path != args.log:
+        print(f"deploy: the log goes to {log_path} (.npz appended to --log {args.log})", flush=True)
     print(f"deploy: {args.policy} on {args.interface or '(auto)'} domain {args.domain_id}, "
           f"{1.0 / spec_ref.policy_dt:g} Hz, {controller.builder.num_frames} reference frames; "
           f"{'auto start' if args.auto_start else 'Enter/s or remote Start to track, space/e or Select = e-stop'}",

@@ -16,7 +16,7 @@ motion. The runner damps on (``DampReason``):
 - ``clip_end`` / ``duration`` / ``stop``: the end of the reference, of ``--duration``, or
   the operator's stop (Ctrl-C).
 
-Start-up gains are Holosoma's (RL_SPEC §9); the damping gains are their kd.
+Start-up gains are Holosoma's (docs/environment.md §9); the damping gains are their kd.
 """
 
 from __future__ import annotations
@@ -26,9 +26,8 @@ from enum import IntEnum
 
 import numpy as np
 
-from otr_gym import robot
-
 from agents.deploy.messages import JointCommand
+from otr_gym import robot
 
 
 class Stage(IntEnum):
@@ -55,7 +54,7 @@ def _per_group(legs: tuple[float, ...], waist: float, arms: float) -> np.ndarray
     return np.array([*legs, *legs, waist, waist, waist] + [arms] * 14, dtype=np.float64)
 
 
-#: RL_SPEC §9 start-up gains: legs (hip pitch/roll/yaw, knee, ankle pitch/roll), waist, arms.
+#: docs/environment.md §9 start-up gains: legs (hip pitch/roll/yaw, knee, ankle pitch/roll), waist, arms.
 STARTUP_KP = _per_group((350, 200, 200, 300, 300, 150), 200, 40)
 STARTUP_KD = _per_group((5, 5, 5, 10, 5, 5), 5, 3)
 
@@ -64,7 +63,7 @@ STARTUP_KD = _per_group((5, 5, 5, 10, 5, 5), 5, 3)
 class SafetyCfg:
     stale_cycles: int = 3  # damp on this many consecutive cycles without a new LowState
     tilt_limit_rad: float = 0.8  # torso tilt from vertical (≈ 46°)
-    soft_limit_factor: float = 0.9  # joint targets clamped to this fraction of the range (RL_SPEC §4)
+    soft_limit_factor: float = 0.9  # joint targets clamped to this fraction of the range (docs/environment.md §4)
     ramp_s: float = 2.0  # start-up ramp to the default pose
     damping_kd: np.ndarray = field(default_factory=lambda: STARTUP_KD.copy())
 

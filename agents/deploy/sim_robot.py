@@ -2,7 +2,7 @@
 
 It subscribes to ``rt/lowcmd`` (``unitree_hg`` LowCmd_), drops commands whose CRC is wrong
 (counting them), and before every physics step applies the motor law of the G1's joint
-drivers, τ = τ_ff + kp(q* − q) + kd(dq* − dq), clipped to the effort limits (RL_SPEC §9). After
+drivers, τ = τ_ff + kp(q* − q) + kd(dq* − dq), clipped to the effort limits (docs/environment.md §9). After
 every step it publishes ``rt/lowstate`` (LowState_ with CRC): joint q/dq/ddq/τ, the pelvis IMU
 (quaternion wxyz, gyroscope in the pelvis frame, accelerometer = specific force in the pelvis
 frame, rpy), and tick = simulated time in ms.
@@ -39,12 +39,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from otr_gym import robot
-from otr_gym.io import save_npz, write_json
-from otr_gym.rotations import quat_from_yaw, quat_mul, quat_to_matrix
-
 from agents.deploy import crc
-from agents.deploy.safety import STARTUP_KD
 from agents.deploy.messages import (
     MOTOR_MODE_ENABLE,
     JointCommand,
@@ -52,6 +47,10 @@ from agents.deploy.messages import (
     MotorState_,
     joint_command,
 )
+from agents.deploy.safety import STARTUP_KD
+from otr_gym import robot
+from otr_gym.io import save_npz, write_json
+from otr_gym.rotations import quat_from_yaw, quat_mul, quat_to_matrix
 
 UPRIGHT_MIN_PELVIS_Z = 0.5  # m: below this (or tilted past UPRIGHT_MAX_TILT) the robot has fallen
 UPRIGHT_MAX_TILT = np.radians(60.0)
@@ -360,24 +359,27 @@ def sim_terrain(terrain: str, reference: str | None):
 
 def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", default="lo", help="network interface for DDS (default lo: sim2sim on one machine)")
-    p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0)")
+    p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0; default: %(default)s)")
     p.add_argument("--reference", default=None, help="start on this reference's first frame (default: default pose)")
     p.add_argument("--terrain", default=None, help="simulate this terrain: a mesh file (m, the reference's world "
                    "frame), or a run folder (the terrain its config gives --reference's clip)")
     p.add_argument("--gantry", action="store_true", help="hang the robot in a virtual gantry until --gantry-release")
     p.add_argument("--gantry-release", type=float, default=SimRobotCfg.gantry_release_s,
                    help="seconds after the first LowCmd before the gantry lowers the robot onto its feet "
-                        "(over 1 s) and lets go")
-    p.add_argument("--physics-hz", type=float, default=SimRobotCfg.physics_hz, help="physics and LowState rate (Hz)")
-    p.add_argument("--yaw", type=float, default=0.0, help="initial heading (degrees)")
+                        "(over 1 s) and lets go (s; default: %(default)s)")
+    p.add_argument("--physics-hz", type=float, default=SimRobotCfg.physics_hz,
+                   help="physics and LowState rate (Hz; default: %(default)s)")
+    p.add_argument("--yaw", type=float, default=0.0, help="initial heading (degrees; default: %(default)s)")
     p.add_argument("--duration", type=float, default=None, help="exit after this many seconds (default: until Ctrl-C)")
     p.add_argument("--idle-exit", type=float, default=None,
-                   help="exit when no LowCmd has come for this many seconds (after the first one)")
+                   help="exit when no LowCmd has come for this many seconds (after the first one; "
+                        "default: never)")
     p.add_argument("--mute-after", type=float, default=None,
                    help="stop publishing LowState this many seconds after the first LowCmd, physics going on "
-                        "(tests the runner's stale-state damping)")
+                        "(tests the runner's stale-state damping; default: never)")
     p.add_argument("--rt-priority", type=int, default=0,
-                   help="run the physics loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling)")
+                   help="run the physics loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling; "
+                        "default: %(default)s)")
     p.add_argument("--stats", type=Path, default=None, help="write a JSON summary here at exit")
     p.add_argument("--trace", type=Path, default=None, help="write the 50 Hz ground truth (qpos, gains) .npz here")
 

@@ -20,7 +20,6 @@ import torch
 
 from otr_gym import robot
 
-
 #: |qpos| or |qvel| beyond this (m, rad, m/s, rad/s) means the world's physics diverged: no G1
 #: state comes near it, and it keeps squares and exponentials of the MDP terms finite.
 MAX_ABS_STATE = 1.0e6

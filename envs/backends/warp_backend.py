@@ -20,6 +20,7 @@ the per-world constraint arrays; the MDP's torch tensors add a few KB per world.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 
 import mujoco
@@ -29,6 +30,24 @@ import warp as wp
 
 from envs.backends.base import PhysicsBackend
 from envs.backends.model import contact_sensor_adr
+
+#: Set (to anything but empty or 0) to keep Warp's start-up banner and its "Module … load on
+#: device … took … ms" line per kernel module (~44 on every environment start, cached or not).
+VERBOSE_ENV = "OTR_WARP_VERBOSE"
+
+
+def quiet_warp() -> None:
+    """Show only Warp's warnings and errors unless ``$OTR_WARP_VERBOSE`` asks for its info lines.
+    Runs before ``wp.init`` (the banner) and any module's first launch (its load line)."""
+    if os.environ.get(VERBOSE_ENV, "").strip() not in ("", "0"):
+        return
+    if hasattr(wp, "LOG_WARNING"):  # newer Warp (1.19): one log threshold, ``config.quiet`` is gone
+        wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)
+    else:
+        wp.config.quiet = True
+
+
+quiet_warp()
 
 
 @wp.kernel
@@ -69,7 +88,7 @@ class WarpBackend(PhysicsBackend):
         mujoco.mj_forward(model, data)
         with wp.ScopedDevice(wp_device):
             self._m = mjw.put_model(model, batch_sizes={f: num_worlds for f in per_world_fields})
-            # A capped solver (RL_SPEC §1: 10 iterations, 20 line-search steps) is the design,
+            # A capped solver (docs/environment.md §1: 10 iterations, 20 line-search steps) is the design,
             # not an error: keep warnings for dropped contacts/constraints only, since a device
             # printf from thousands of worlds per substep would flood the log and stall the step.
             self._m.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)

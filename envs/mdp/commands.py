@@ -5,7 +5,7 @@ one the observation shows and the next step's rewards compare the robot with. A 
 places the robot on ``start_frame`` t₀ and sets ``frame`` = t₀ + 1; every step then advances
 ``frame`` by one.
 
-Start frames follow BeyondMimic's adaptive sampling (RL_SPEC §2). Each clip c of T_c frames
+Start frames follow BeyondMimic's adaptive sampling (docs/environment.md §2). Each clip c of T_c frames
 has n_c = ⌊T_c / (fps·bin_duration)⌋ + 1 bins. A termination adds 1 to the bin of the env's
 target frame; every step the per-bin failure rate follows f ← α·cur + (1−α)·f. A start bin is
 drawn with p(bin) ∝ Σ_k λᵏ·(f + r/n_c)[bin + k] (k < kernel size, clamped inside the clip),

@@ -11,7 +11,7 @@ objects):
   HDMI contact target, so the target moves with the box the robot actually holds;
 - ``hand_gate`` (H, M) and ``support_gate`` (M, S) in [0, 1]: the proximity windows.
 
-Windows (RL_SPEC preamble: "gated by robot–box and box–table proximity windows taken from our
+Windows (docs/environment.md §4: "gated by robot–box and box–table proximity windows taken from our
 reference's contact annotations"): a frame is inside when the surface distance is below a
 threshold: ``proximity_threshold_m`` (default 5 cm) for a hand and an object,
 ``support_threshold_m`` (2 cm) for an object and a support. Hand distances are the reference's
@@ -92,7 +92,8 @@ class ObjectLibrary:
             names=tuple(objects.objects[i].name for i in moving), support_names=tuple(supports),
             hand_bodies=tuple(cfg.hand_bodies), window_source=tuple(c["source"] for c in per_clip),
             pos_w=cat("pos"), quat_w=cat("quat"), lin_vel_w=cat("lin"), ang_vel_w=cat("ang"),
-            lin_acc_w=cat("acc"), hand_target_o=cat("target"), hand_gate=cat("hand_gate"), support_gate=cat("support_gate"),
+            lin_acc_w=cat("acc"), hand_target_o=cat("target"), hand_gate=cat("hand_gate"),
+            support_gate=cat("support_gate"),
             static_pos_w=const([objects.objects[i].pos_w for i in static], 3),
             static_quat_w=const([objects.objects[i].quat_w for i in static], 4),
         )
@@ -257,7 +258,8 @@ class _Geometry:
         d = self.data
         d.qpos[:self.robot_nq] = qpos
         for k, i in enumerate(moving):
-            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[ref.objects[i].pos_w[t], ref.objects[i].quat_w[t]]
+            d.qpos[self.robot_nq + 7 * k:self.robot_nq + 7 * k + 7] = np.r_[
+                ref.objects[i].pos_w[t], ref.objects[i].quat_w[t]]
         mujoco.mj_kinematics(self.model, d)
 
     def overlaps(self, ref: Reference, moving: list[int]) -> dict[int, list[float]]:

@@ -1,4 +1,4 @@
-"""Observation terms (RL_SPEC §3): plain functions of a ``TrackingState`` returning (N, d).
+"""Observation terms (docs/environment.md §3): plain functions of a ``TrackingState`` returning (N, d).
 
 Frames: ``_b`` is the robot anchor (torso) frame for anchor/body terms, the pelvis frame for
 base velocities. Orientations are given as the first two columns of a rotation matrix
@@ -85,7 +85,7 @@ def object_ori_b(s: TrackingState) -> torch.Tensor:
 
 def object_lin_vel_b(s: TrackingState) -> torch.Tensor:
     """(N, 3M) object linear velocities rotated into the robot anchor frame (m/s; a pure
-    rotation, RL_SPEC preamble: not HS's Rᵀ(v − p))."""
+    rotation, docs/environment.md §3: not HS's Rᵀ(v − p))."""
     o = s.objects
     q = s.anchor_quat_w[:, None].expand(-1, o.lin_vel_w.shape[1], -1)
     return quat_apply_inverse(q, o.lin_vel_w).flatten(1)

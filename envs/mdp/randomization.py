@@ -1,4 +1,4 @@
-"""Domain randomisation (RL_SPEC §6): friction, torso centre of mass and default-pose bias
+"""Domain randomisation (docs/environment.md §6): friction, torso centre of mass and default-pose bias
 drawn once per env at start-up; velocity pushes at random 1–3 s intervals; for the box task,
 the objects' friction, mass and inertia at start-up (``randomize_objects``).
 

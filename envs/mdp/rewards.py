@@ -1,4 +1,4 @@
-"""Reward terms (RL_SPEC §4): plain functions of a ``TrackingState`` returning (N,).
+"""Reward terms (docs/environment.md §4): plain functions of a ``TrackingState`` returning (N,).
 
 The environment sums weight · value · dt over the terms listed in the config. Tracking terms
 are exp(−e/σ²) kernels; body terms average e over the K tracked bodies, compare orientations

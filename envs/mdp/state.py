@@ -6,7 +6,7 @@ Shapes: N envs, K tracked bodies (``body_names``), 29 joints, C contact-sensor b
 objects (``ObjectState``) M moving objects, H hands, S supports.
 Frames: ``_w`` world, ``_b`` robot body frame; quaternions wxyz; SI units.
 
-Alignment (RL_SPEC §2): Δq = yaw(q_robotAnchor · q_refAnchor⁻¹); body target orientation
+Alignment (docs/environment.md §2): Δq = yaw(q_robotAnchor · q_refAnchor⁻¹); body target orientation
 Δq·q_i; body target position [robotAnchor.xy, refAnchor.z] + Δq·(p_i − p_refAnchor). Anchor
 terms use the unaligned world reference.
 """

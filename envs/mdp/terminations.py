@@ -1,4 +1,4 @@
-"""Termination terms (RL_SPEC §5, MJ thresholds): plain functions of a ``TrackingState``
+"""Termination terms (docs/environment.md §5, MJ thresholds): plain functions of a ``TrackingState``
 returning (N,) bool. Any true term ends the episode as a failure (not a time-out)."""
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Dynamic feasibility of a reference: what a tracking policy on the real G1 will find hard.
 
 ``check_feasibility(reference)`` looks at the motion alone (no demonstration), at the tracking
-rate (50 fps, RL_SPEC §2: the clip is resampled at load exactly like this), frame by frame:
+rate (50 fps, docs/environment.md §2: the clip is resampled at load exactly like this), frame by frame:
 
 * **jumps**: how far the pelvis lies off the straight line between its neighbours,
   |p_t − (p_{t−1} + p_{t+1})/2| = |a|·dt²/2 (1 cm at 50 fps is 5 g): a teleport of the
@@ -74,8 +74,8 @@ from otr_gym import robot
 from otr_gym.flags import true_intervals
 from otr_gym.robot_geometry import collision_capsules, collision_points, posed_vertices, visual_meshes
 from otr_gym.rotations import quat_from_vector_pairs, quat_to_matrix, skew
-from retarget.evaluation.feet import least_moving_speed
 from retarget.checks.ground import Ground
+from retarget.evaluation.feet import least_moving_speed
 
 GRAVITY = 9.81
 FOOT_NAMES = ("left", "right")
@@ -85,12 +85,12 @@ LIMB_NAMES = ("left foot", "right foot", "left hand", "right hand")
 
 @dataclass(frozen=True)
 class FeasibilityCfg:
-    fps: float = 50.0  # analyse at the tracking rate (RL_SPEC §2: references resampled to 50 fps)
+    fps: float = 50.0  # analyse at the tracking rate (docs/environment.md §2: references resampled to 50 fps)
     #: A sole point (or, for stance, the foot mesh's lowest vertex) within this distance (m) of
     #: the ground (the floor z = 0, or a terrain face along its normal) is on the ground.
     contact_height_m: float = 0.02
     #: Friction coefficient of the cone (MuJoCo's default 1.0; training randomises foot friction
-    #: in [0.3, 1.2], RL_SPEC §6): 0.7 is a floor the policy meets often.
+    #: in [0.3, 1.2], docs/environment.md §6): 0.7 is a floor the policy meets often.
     friction: float = 0.7
     #: Accelerations and torques from twists low-passed at this frequency (Hz; None: raw).
     lowpass_hz: float | None = 6.0
@@ -329,7 +329,8 @@ def _model() -> _Model:
         corners = ends[ConvexHull(ends[:, :2]).vertices]
         frames.append(tuple(robot.add_point_frame(model, foot, p, f"{foot}_sole{k}") for k, p in enumerate(corners)))
         points.append(corners)
-    probes = [(robot.add_point_frame(model, point.body, point.point, f"{point.geom}_probe{k}"), point.radius, point.body)
+    probes = [(robot.add_point_frame(model, point.body, point.point, f"{point.geom}_probe{k}"),
+               point.radius, point.body)
               for k, point in enumerate(collision_points())]
     links = tuple(i for i, (_, _, body) in enumerate(probes) if body not in robot.FEET)
     mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
@@ -533,7 +534,8 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     lines.append(f"  {'jumps (pelvis off its path)':31s} peak {100 * j['peak_m']:.1f} cm (t {j['time_s']:.2f} s); "
                  f"{j['frames_over']} frames over {100 * c.jump_m:g} cm")
     j = s["limb_jump"]
-    lines.append(f"  {'limb jumps (feet, hands)':31s} peak {100 * j['peak_m']:.1f} cm ({j['limb']}, t {j['time_s']:.2f} s); "
+    lines.append(f"  {'limb jumps (feet, hands)':31s} peak {100 * j['peak_m']:.1f} cm "
+                 f"({j['limb']}, t {j['time_s']:.2f} s); "
                  f"{j['frames_over']} frames over {100 * c.limb_jump_m:g} cm")
     for key, label, unit in (("joint_speed", "joint speed", "x velocity limit"),
                              ("joint_accel", "joint acceleration", "x motor-alone limit"),
@@ -550,7 +552,8 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
     if d["peak_mps"] is None:
         lines.append(f"  {'sliding':31s} no foot ever on the ground")
     else:
-        lines.append(f"  {'sliding (foot on the ground)':31s} median {100 * d['median_mps']:.1f} cm/s, peak {100 * d['peak_mps']:.1f} "
+        lines.append(f"  {'sliding (foot on the ground)':31s} median {100 * d['median_mps']:.1f} cm/s, "
+                     f"peak {100 * d['peak_mps']:.1f} "
                      f"cm/s ({d['foot']} foot, t {d['time_s']:.2f} s); {d['frames_over']} frames over "
                      f"{100 * c.slide_speed_mps:g} cm/s")
     fl = s["flight"]
@@ -611,7 +614,7 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
     ax.set_ylabel("% of weight", fontsize=8)
     ax.legend(fontsize=7, loc="upper right", ncol=3)
     ax = axes[4]
-    for k, name in enumerate(FOOT_NAMES):
+    for k in range(len(FOOT_NAMES)):
         on = r.stance[:, k]
         speed = np.nan_to_num(r.slide_speed_mps[:, k], nan=0.0)
         sc = ax.scatter(t[on], np.full(on.sum(), k), c=100 * speed[on], cmap="plasma", vmin=0,

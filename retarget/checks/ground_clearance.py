@@ -19,7 +19,7 @@ cannot reach them all). Root, legs and waist, and every frame whose arms are cle
 configurations exactly; body poses and velocities are recomputed from the configurations
 (``Reference.from_qpos``), objects and contact annotations carried over.
 
-    otr clear-ground IN.npz OUT.npz [--terrain MESH] [--clearance-m 0.002]   # or python -m retarget.checks.ground_clearance
+    otr clear-ground IN.npz OUT.npz [--terrain MESH] [--clearance-m 0.002]
 """
 
 from __future__ import annotations
@@ -72,7 +72,8 @@ class ClearanceReport:
                f"{self.depth_before_m.size}, deepest {100 * self.depth_before_m.max():.1f} cm; after: "
                f"{int((self.depth_after_m > 0).sum())}, deepest {100 * self.depth_after_m.max():.2f} cm"]
         if changed.any():
-            out.append(f"arm joints changed on {int(changed.sum())} frames: by {np.median(self.joint_change_rad[changed]):.2f} "
+            median_rad = np.median(self.joint_change_rad[changed])
+            out.append(f"arm joints changed on {int(changed.sum())} frames: by {median_rad:.2f} "
                        f"rad (median), {self.joint_change_rad.max():.2f} rad at most")
         return out
 
@@ -174,19 +175,13 @@ def configure_parser(p) -> None:
                    help="height every arm collision point keeps above the ground (m, default %(default)s)")
 
 
-def main(args=None) -> int:
-    """``otr clear-ground REFERENCE OUT [--terrain MESH] [--clearance-m M]`` (or ``python -m
-    retarget.checks.ground_clearance …``; ``args`` parsed, or an argv list). A missing or unreadable
+def main(args) -> int:
+    """``otr clear-ground REFERENCE OUT [--terrain MESH] [--clearance-m M]``. A missing or unreadable
     reference or terrain: a message naming the file, exit code 2."""
-    import argparse
     import sys
 
     from retarget.checks.ground import load_clip_on_ground
 
-    if not isinstance(args, argparse.Namespace):
-        p = argparse.ArgumentParser(prog="python -m retarget.checks.ground_clearance", description=__doc__.split("\n\n")[0])
-        configure_parser(p)
-        args = p.parse_args(args)
     if args.clearance_m < 0:
         print("clear-ground: --clearance-m must be >= 0", file=sys.stderr)
         return 2
@@ -200,6 +195,3 @@ def main(args=None) -> int:
     print(f"wrote {cleared.save(Path(args.out))}")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -28,7 +28,6 @@ from otr_gym.rotations import quat_to_matrix
 from retarget.inputs.meshes import as_trimesh, object_mesh, signed_distance
 from retarget.solver.substitute import SubstituteObject
 
-
 #: Demonstrated and robot hands compared by the contact-hold check (human part, G1 link).
 HANDS = (("L_Wrist", "left_wrist_yaw_link"), ("R_Wrist", "right_wrist_yaw_link"))
 
@@ -176,7 +175,7 @@ def object_in_robot_depth(reference, spacing_m: float = 0.005, prefilter_m: floa
 
 
 def configure_parser(p) -> None:
-    """``otr verify`` / ``python -m retarget.checks.verify``'s arguments."""
+    """``otr verify``'s arguments."""
     p.add_argument("reference", help="retargeted reference .npz (native mode)")
     p.add_argument("--demo", help="the demonstration it was made from (for the kinematic checks)")
     p.add_argument("--object", default=None, help="object mesh when the demonstration file lacks it")
@@ -187,21 +186,15 @@ def configure_parser(p) -> None:
     p.add_argument("--feasibility-json", help="write the dynamic-feasibility summary (JSON) here")
 
 
-def main(args=None) -> int:
-    """``otr verify REFERENCE [--demo DEMO] [--object MESH] [--terrain MESH] [--feasibility-png PNG]``
-    (or ``python -m retarget.checks.verify …``; ``args`` parsed, or an argv list): print the checks
-    against the demonstration (with ``--demo``) and the dynamic feasibility
+def main(args) -> int:
+    """``otr verify REFERENCE [--demo DEMO] [--object MESH] [--terrain MESH] [--feasibility-png PNG]``:
+    print the checks against the demonstration (with ``--demo``) and the dynamic feasibility
     (``retarget.checks.feasibility``). A missing or unreadable reference or terrain: a message naming
     the file, exit code 2."""
-    import argparse
     import sys
 
     from retarget.checks.ground import load_clip_on_ground
 
-    if not isinstance(args, argparse.Namespace):
-        p = argparse.ArgumentParser(prog="python -m retarget.checks.verify", description=__doc__.split("\n\n")[0])
-        configure_parser(p)
-        args = p.parse_args(args)
     try:
         reference, ground = load_clip_on_ground(args.reference, args.terrain)
     except ValueError as exc:  # InvalidReferenceError, InvalidMeshError: the file named
@@ -228,6 +221,3 @@ def _print_checks(reference, args) -> None:
             note = "ok" if value <= limit_mm * 1e-3 else f"beyond {limit_mm} mm"
         print(f"{key:28s} {value:.6g} {note}")
 
-
-if __name__ == "__main__":
-    raise SystemExit(main())

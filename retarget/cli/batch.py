@@ -20,7 +20,6 @@ import numpy as np
 from retarget.clip import retarget_timed
 from retarget.config import ConfigError, RetargetConfig
 
-
 INPUT_SUFFIXES = (".npz", ".pt", ".bvh")
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
     p.add_argument("--kind", default="box_carry", choices=("box_carry", "walk", "crawl"),
                    help="which embedded demonstration to run (default: box_carry)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the procedural generator")
+    p.add_argument("--seed", type=int, default=0, help="seed of the procedural generator (default: %(default)s)")
 
 
 def _print_rows(rows) -> None:
@@ -54,12 +54,12 @@ class _Stage:
 def main(args: argparse.Namespace) -> int:
     from otr_gym.io import write_json
     from otr_gym.reference_summary import reference_summary
-    from retarget.inputs.summary import demonstration_summary
-    from retarget.evaluation import EvalConfig, evaluate_sequence, format_table, plot_contact_timeline
-    from retarget.geometry.kernel_warmup import start_warmup, stop_warmup
     from retarget.cli.pictures import save_comparison
     from retarget.clip import retarget_demonstration
     from retarget.config import load_config
+    from retarget.evaluation import EvalConfig, evaluate_sequence, format_table, plot_contact_timeline
+    from retarget.geometry.kernel_warmup import start_warmup, stop_warmup
+    from retarget.inputs.summary import demonstration_summary
     from retarget.inputs.synthetic import generate
 
     out = Path(args.out)

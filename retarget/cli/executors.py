@@ -15,7 +15,6 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from retarget.cli.batch import ClipResult, Job, Task, retarget_bytes, run_job
 
-
 ONE_THREAD = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 def _one_thread_per_worker() -> None:

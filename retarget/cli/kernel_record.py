@@ -1,18 +1,17 @@
 """Record the list of numba kernels that ``retarget.geometry.kernel_warmup`` compiles beside a first run.
 
-``python -m retarget.cli.kernel_record`` retargets the synthetic box carry in a fresh process and
-writes every kernel it called, with its signature, to ``retarget/geometry/kernels.txt``. The carry calls
-every kernel that the real carries, tables and walks call, with the same signatures (checked on
-OMOMO ``sub3_largebox_003`` and ``sub2_largetable_004`` and AMASS ``smplh_walk_jog_turn``). Run
-it after changing a kernel's arguments: ``tests/test_kernel_warmup.py`` fails while the list is
-stale. ``--compile`` compiles the listed kernels into numba's cache now, in this process.
+``otr kernels`` retargets the synthetic box carry in a fresh process and writes every kernel it
+called, with its signature, to ``retarget/geometry/kernels.txt``. The carry calls every kernel that
+the real carries, tables and walks call, with the same signatures (checked on OMOMO
+``sub3_largebox_003`` and ``sub2_largetable_004`` and AMASS ``smplh_walk_jog_turn``). Run it after
+changing a kernel's arguments: ``tests/retarget/geometry/test_kernel_warmup.py`` fails while the
+list is stale. ``--compile`` compiles the listed kernels into numba's cache now, in this process.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from pathlib import Path
 
 from retarget.geometry.kernel_warmup import KERNEL_LIST, compile_kernels, compiled_signatures, read_kernel_list
@@ -22,7 +21,7 @@ RECORD_FPS = 10.0
 
 _HEADER = ("# numba kernels of the retargeter that Python calls, one signature each (numba's type reprs).\n"
            "# retarget.geometry.kernel_warmup compiles them beside the grids of a first run.\n"
-           "# Regenerate after changing a kernel's arguments: python -m retarget.cli.kernel_record\n")
+           "# Regenerate after changing a kernel's arguments: otr kernels\n")
 
 
 def retarget_recorded_clip() -> None:
@@ -45,11 +44,15 @@ def record(path: Path = KERNEL_LIST) -> list[str]:
     return lines
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m retarget.cli.kernel_record", description=__doc__.split("\n\n")[0])
+def configure_parser(parser: argparse.ArgumentParser) -> None:
+    """``otr kernels``' arguments."""
     parser.add_argument("--compile", action="store_true",
                         help="compile the listed kernels into numba's cache instead of recording the list")
-    args = parser.parse_args(argv)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``otr kernels``: record the list (run it in a fresh process: ``otr`` is one); ``--compile``:
+    compile it, exit code 1 naming the kernels that failed."""
     if args.compile:
         entries = read_kernel_list()
         failures = compile_kernels(entries)
@@ -57,7 +60,3 @@ def main(argv: list[str] | None = None) -> int:
         return 1 if failures else 0
     print(f"{KERNEL_LIST}: {len(record())} kernels")
     return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -49,8 +49,8 @@ def main(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from otr_gym.io import write_json
-    from retarget.inputs.bvh import options_from_args
     from retarget.geometry.kernel_warmup import start_warmup, stop_warmup
+    from retarget.inputs.bvh import options_from_args
 
     try:
         cfg = load_config(args.config, mode=args.mode, fps=args.fps)

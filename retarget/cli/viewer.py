@@ -14,7 +14,7 @@ switchable in the side panel, e.g. ours against Holosoma's — or demonstrations
 * contacts per channel from the reference's ``contact_distance`` annotations: a link within
   ε = 20 mm of a channel takes that channel's colour (ground: orange, objects: magenta, cyan,
   green, …) and so does the object; the person's parts within 20 mm of the floor turn orange;
-* the metrics of ``otr eval`` for the reference shown (computed in the background when a
+* the metrics of ``otr score`` for the reference shown (computed in the background when a
   demonstration is given).
 
 Everything the page shows is driven from this process: ``ReferenceViewer.show(frame)`` sets the
@@ -136,11 +136,11 @@ def person_track(demo) -> PersonTrack:
 
 
 def metrics_markdown(metrics: dict | None, note: str = "") -> str:
-    """The ``otr eval`` metrics of one reference as a markdown table (paper units)."""
+    """The ``otr score`` metrics of one reference as a markdown table (paper units)."""
     from retarget.evaluation.sequence import TABLE_COLUMNS
 
     if metrics is None:
-        return f"**otr eval**  \n{note or 'no demonstration given (--demo)'}"
+        return f"**otr score**  \n{note or 'no demonstration given (--demo)'}"
     rows = ["| metric | value |", "|---|---|"]
     groups = {"dd": "ground ", "R": "ground ", "P": "ground ", "J": "ground "}
     for key, label, unit, factor, digits in TABLE_COLUMNS:
@@ -148,7 +148,7 @@ def metrics_markdown(metrics: dict | None, note: str = "") -> str:
         prefix = "object " if key.startswith("object") else groups.get(label, "")
         text = "–" if value is None or not np.isfinite(value) else f"{value * factor:.{digits}f} {unit}".strip()
         rows.append(f"| {prefix}{label} | {text} |")
-    return "**otr eval**\n\n" + "\n".join(rows)
+    return "**otr score**\n\n" + "\n".join(rows)
 
 
 class ReferenceViewer:

@@ -31,7 +31,8 @@ def format_table(records: list[dict], medians: bool | None = None) -> str:
         medians = len({r["demonstration"] for r in records}) > 1
     if medians:
         med = dataset_medians([r["metrics"] for r in records])
-        rows.append([f"median ({len(records)} sequences)"] + [_cell(med.get(k), f, dg) for k, _, _, f, dg in TABLE_COLUMNS])
+        rows.append([f"median ({len(records)} sequences)"]
+                    + [_cell(med.get(k), f, dg) for k, _, _, f, dg in TABLE_COLUMNS])
     header = ["Reference"] + [h for _, h, _, _, _ in TABLE_COLUMNS]
     units = [""] + [u for _, _, u, _, _ in TABLE_COLUMNS]
     width = [max(len(x) for x in col) for col in zip(header, units, *rows)]

@@ -24,7 +24,6 @@ from otr_gym import robot
 from otr_gym.flags import true_intervals
 from otr_gym.reference import Reference
 from otr_gym.robot_geometry import visual_meshes
-from retarget.inputs.demonstration import Demonstration
 from retarget.evaluation.alignment import check_durations, demo_at_times
 from retarget.evaluation.channels import object_channels, reference_tracks
 from retarget.evaluation.config import EvalConfig
@@ -36,6 +35,7 @@ from retarget.evaluation.proximity import BoundedMesh, ground_proximity, mesh_pr
 from retarget.evaluation.scale import ScaleFit, recover_scale, scale_demonstration
 from retarget.evaluation.self_collision import g1_self_model, self_penetration
 from retarget.evaluation.units import BodyUnit, Piece, PosedUnit, default_units
+from retarget.inputs.demonstration import Demonstration
 
 #: Frames of one batch of mesh queries: bounds the memory of posed vertices near objects
 #: (a few MB per unit at worst) while keeping libigl's per-call set-up (~0.1 s) rare.
@@ -253,8 +253,8 @@ def _proximity_samples(demo_c: Demonstration, ref: Reference, units: tuple[BodyU
     part_of = {n: i for i, n in enumerate(demo_c.part_names)}
     pieces = [Piece.of(v) for v in demo_c.surface.vertices]
     human = []
-    for u in units:
-        ps = [part_of[p] for p in u.parts]
+    for unit in units:
+        ps = [part_of[p] for p in unit.parts]
         human.append(PosedUnit.from_poses([pieces[k] for k in ps], demo_c.part_pos_w[:, ps], demo_c.part_quat_w[:, ps]))
     d_hat, d = np.empty((T, U, C)), np.empty((T, U, C))
     w_hat, w = np.empty((T, U, C, 3)), np.empty((T, U, C, 3))

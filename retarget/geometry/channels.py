@@ -45,7 +45,7 @@ from numba.extending import intrinsic
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from otr_gym.io import save_npz
+from otr_gym.io import load_npz, save_npz
 from retarget.geometry.distance_grid import grid_signed_distance, node_positions
 from retarget.geometry.jit import helper, inlined
 from retarget.inputs.meshes import InvalidMeshError, TriMesh, load_mesh, object_mesh
@@ -66,7 +66,7 @@ _CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dty
 
 @dataclass(frozen=True)
 class GeometryConfig:
-    """Proximity geometry settings (paper Sec. III-A; METHOD.md "Proximity triple")."""
+    """Proximity geometry settings (paper Sec. III-A; docs/method.md "Proximity triple")."""
 
     grid_resolution_m: float = 0.01  # 1 cm isotropic voxels (Sec. III-A)
     band_m: float = 0.15  # d̄: grid covers 15 cm beyond the surface; a pair is active when d < d̄
@@ -618,8 +618,7 @@ def cached_arrays(path: Path, key: str, build: Callable[[], dict[str, np.ndarray
     """
     if path.is_file():
         try:
-            with np.load(path, allow_pickle=False) as z:
-                arrays = {k: z[k] for k in z.files}
+            arrays = load_npz(path)
             if str(arrays.pop("cache_key", "")) != key:
                 raise ValueError("cache key mismatch")
             check(arrays)
@@ -875,6 +874,6 @@ def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache
     return SDFChannel.from_mesh(load_mesh(path), cfg, cache_dir, **kw)
 
 
-__all__ = ["Channel", "GeometryConfig", "GridStack", "GroundChannel", "InvalidMeshError", "ProximityQuery", "SDFChannel",
-           "SurfaceGeodesics", "SurfaceSamples", "VoxelGrid", "build_sdf_grid", "cached_arrays",
+__all__ = ["Channel", "GeometryConfig", "GridStack", "GroundChannel", "InvalidMeshError", "ProximityQuery",
+           "SDFChannel", "SurfaceGeodesics", "SurfaceSamples", "VoxelGrid", "build_sdf_grid", "cached_arrays",
            "default_cache_dir", "load_channel", "sample_surface"]

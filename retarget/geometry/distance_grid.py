@@ -91,7 +91,8 @@ def _coarse_lower_bound(mesh: TriMesh, origin: np.ndarray, resolution: float,
     for a in (0, 1):
         for b in (0, 1):
             for c in (0, 1):
-                row = ((cell[0] + a)[:, None, None] * cny + (cell[1] + b)[None, :, None]) * cnz + (cell[2] + c)[None, None]
+                row = (((cell[0] + a)[:, None, None] * cny + (cell[1] + b)[None, :, None]) * cnz
+                       + (cell[2] + c)[None, None])
                 dist = np.sqrt(((frac[0] - a * step) ** 2)[:, None, None] + ((frac[1] - b * step) ** 2)[None, :, None]
                                + ((frac[2] - c * step) ** 2)[None, None])
                 candidate = u_c[row] - dist

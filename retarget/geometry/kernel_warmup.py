@@ -20,8 +20,8 @@ numba checks its cache against the sources itself). Library calls never spawn: o
 line starts a warm-up. A warm-up that fails costs time, never a result: the solver compiles
 what it needs, and a warning names the kernel.
 
-``python -m retarget.cli.kernel_record`` rewrites the list from a retarget of the synthetic box
-carry (``retarget.cli.kernel_record``; the tests check that the list is current).
+``otr kernels`` rewrites the list from a retarget of the synthetic box carry
+(``retarget.cli.kernel_record``; the tests check that the list is current).
 """
 
 from __future__ import annotations
@@ -171,7 +171,7 @@ class WarmUp:
             outcome.close()
         if failures:
             warnings.warn("numba kernel warm-up: " + "; ".join(failures) + " (the solver compiles them itself; "
-                          "if a signature is stale: python -m retarget.cli.kernel_record)",
+                          "if a signature is stale: otr kernels)",
                           RuntimeWarning, stacklevel=2)
         else:
             self.marker.parent.mkdir(parents=True, exist_ok=True)

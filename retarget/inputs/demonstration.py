@@ -10,13 +10,13 @@ on it: ``retarget.inputs.readers`` (AMASS, OMOMO, the dispatch) and ``retarget.i
 from __future__ import annotations
 
 import json
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
-from otr_gym.io import save_npz
+from otr_gym.io import NpzError, load_npz, save_npz
 from otr_gym.rotations import quat_to_matrix
 from retarget.inputs.human_surface import HumanSurface
 
@@ -131,7 +131,7 @@ def scaled_object_positions(pos_w: np.ndarray, sc: float) -> np.ndarray:
     return out
 
 
-def fail(origin: str, problem: str):
+def fail(origin: str, problem: str) -> NoReturn:
     raise InvalidDemonstrationError(f"{origin}: {problem}")
 
 
@@ -238,11 +238,11 @@ _REQUIRED_KEYS = ("format", "name", "fps", "part_names", "part_parents", "part_p
 
 
 def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an .npz demonstration (``otr_gym.io.load_npz``: nothing unpickled)."""
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {k: npz[k] for k in npz.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise InvalidDemonstrationError(f"{path}: not a readable .npz file ({exc})") from exc
+        return load_npz(path)
+    except (NpzError, OSError) as exc:  # the message names the file and the problem
+        raise InvalidDemonstrationError(str(exc)) from exc
 
 
 def _split(origin: str, flat: np.ndarray, counts: np.ndarray, key: str) -> list[np.ndarray]:

@@ -52,7 +52,8 @@ SMPLX_REST_QUAT_W = quat_from_rotvec(np.full(3, 2.0 * np.pi / 3.0 / np.sqrt(3.0)
 # ------------------------------------------------------------------ human part <-> G1 link
 
 #: The one human-part <-> G1-link table. For every G1 body with a visual mesh, the human parts
-#: whose surface its probes take their targets from (OT correspondences, METHOD.md). Small motor
+#: whose surface its probes take their targets from (OT correspondences,
+#: docs/method.md "Correspondences (optimal transport)"). Small motor
 #: housings (hip pitch, shoulder pitch, waist yaw/roll, ankle pitch, wrist roll/pitch) take the
 #: human part most of their vertices are nearest to when both stand in the T-pose at the same
 #: height; the torso carries the G1 head, so it takes the upper trunk, neck, head and collars.

@@ -1,4 +1,5 @@
-"""Human (and human–object) demonstrations from capture files: the readers (the type is ``retarget.inputs.demonstration``).
+"""Human (and human–object) demonstrations from capture files: the readers (the type is
+``retarget.inputs.demonstration``).
 
 World frame z-up, metres, quaternions wxyz. Human "parts" are the 22 SMPL-X body joints
 (``retarget.inputs.human.PART_NAMES``); each part carries a rigid piece of the mannequin-x surface
@@ -36,17 +37,17 @@ import numpy as np
 
 from otr_gym.rotations import quat_from_rotvec, quat_mul, quat_normalize, quat_to_matrix, xyzw_to_wxyz
 from retarget.inputs.demonstration import (
-    DemoObject,
     Demonstration,
     DemonstrationFileNotFoundError,
+    DemoObject,
     InvalidDemonstrationError,
     check_finite,
     check_shape,
     check_unit,
     fail,
     from_arrays,
-    read_npz,
     ground_shift,
+    read_npz,
 )
 from retarget.inputs.meshes import InvalidMeshError, load_mesh
 
@@ -207,13 +208,17 @@ def _find_object_mesh(path: Path, object_name: str | None) -> Path:
     if object_name is None:
         fail(str(path), "cannot infer the object name from the file name (expected sub<N>_<object>_<take>); "
                          "pass object_mesh")
-    candidates = [folder / "objects" / f"{object_name}.obj" for folder in (path.parent, path.parent.parent)]
+    # The clip's folder and its parent: OMOMO_new/<clip>.pt beside OMOMO_new/objects/, or a data root holding
+    # omomo/ and objects/. For a relative path in the working folder both are "." (one candidate, listed once).
+    candidates = list(dict.fromkeys(folder / "objects" / f"{object_name}.obj" for folder in (path.parent,
+                                                                                            path.parent.parent)))
     for candidate in candidates:
         if candidate.is_file():
             return candidate
+    looked = " or ".join(str(c) for c in candidates)
     raise DemonstrationFileNotFoundError(
-        f"{path}: object mesh for {object_name!r} not found (looked for {[str(c) for c in candidates]}); "
-        "pass object_mesh")
+        f"{path}: object mesh for {object_name!r} not found (looked for {looked}); pass the mesh: "
+        f"load_demonstration(..., object_mesh='{object_name}.obj') or otr retarget ... --object {object_name}.obj")
 
 
 def _read_omomo(path: Path, object_mesh: Path | None, ground: bool) -> Demonstration:

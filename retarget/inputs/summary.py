@@ -11,9 +11,9 @@ from otr_gym.reference_summary import CONTACT_EPS_M
 
 
 def demonstration_summary(path: Path, object_mesh: Path | None, bvh=None) -> list[tuple[str, str]]:
-    from retarget.inputs.readers import load_demonstration
-    from retarget.inputs.meshes import as_trimesh, signed_distance
     from otr_gym.rotations import quat_apply_inverse
+    from retarget.inputs.meshes import as_trimesh, signed_distance
+    from retarget.inputs.readers import load_demonstration
 
     demo = load_demonstration(path, object_mesh=object_mesh, bvh=bvh)
     rows = [
@@ -40,5 +40,6 @@ def demonstration_summary(path: Path, object_mesh: Path | None, bvh=None) -> lis
                 near[k] += d[part_of_vertex == k].min() < CONTACT_EPS_M
         parts = [f"{demo.part_names[k]} {near[k] / len(frames):.0%}" for k in np.argsort(near)[::-1][:4] if near[k]]
         rows.append((f"object {o.name}", f"{'static' if o.static else 'moves'}, {len(o.faces)} faces, "
-                     f"z {o.pos_w[:, 2].min():.2f} – {o.pos_w[:, 2].max():.2f} m; contact: {', '.join(parts) or 'none'}"))
+                     f"z {o.pos_w[:, 2].min():.2f} – {o.pos_w[:, 2].max():.2f} m; "
+                     f"contact: {', '.join(parts) or 'none'}"))
     return rows

@@ -25,8 +25,8 @@ from scipy.spatial import ConvexHull
 from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
 from retarget.geometry.channels import GeometryConfig, sample_surface
-from retarget.inputs.human_surface import HumanSurface
 from retarget.geometry.jit import inlined
+from retarget.inputs.human_surface import HumanSurface
 from retarget.inputs.meshes import TriMesh, as_trimesh
 
 
@@ -158,7 +158,8 @@ def _pose_into(points, body, frame, rot, pos, out_w, out_f):
     for k in range(points.shape[0]):
         b, f = body[k], frame[k]
         for r in range(3):
-            out_w[k, r] = rot[b, r, 0] * points[k, 0] + rot[b, r, 1] * points[k, 1] + rot[b, r, 2] * points[k, 2] + pos[b, r]
+            out_w[k, r] = (rot[b, r, 0] * points[k, 0] + rot[b, r, 1] * points[k, 1] + rot[b, r, 2] * points[k, 2]
+                           + pos[b, r])
         d0, d1, d2 = out_w[k, 0] - pos[f, 0], out_w[k, 1] - pos[f, 1], out_w[k, 2] - pos[f, 2]
         for r in range(3):
             out_f[k, r] = rot[f, 0, r] * d0 + rot[f, 1, r] * d1 + rot[f, 2, r] * d2
@@ -175,9 +176,12 @@ def _pose_in_frame(points, i, body, frame, rot, pos):
 @inlined
 def _posed_point(points, i, body, rot, pos):
     """Point i of ``points`` (frame of ``body``) in the world (the arithmetic of :func:`_pose_into`)."""
-    return (rot[body, 0, 0] * points[i, 0] + rot[body, 0, 1] * points[i, 1] + rot[body, 0, 2] * points[i, 2] + pos[body, 0],
-            rot[body, 1, 0] * points[i, 0] + rot[body, 1, 1] * points[i, 1] + rot[body, 1, 2] * points[i, 2] + pos[body, 1],
-            rot[body, 2, 0] * points[i, 0] + rot[body, 2, 1] * points[i, 1] + rot[body, 2, 2] * points[i, 2] + pos[body, 2])
+    return (rot[body, 0, 0] * points[i, 0] + rot[body, 0, 1] * points[i, 1] + rot[body, 0, 2] * points[i, 2]
+            + pos[body, 0],
+            rot[body, 1, 0] * points[i, 0] + rot[body, 1, 1] * points[i, 1] + rot[body, 1, 2] * points[i, 2]
+            + pos[body, 1],
+            rot[body, 2, 0] * points[i, 0] + rot[body, 2, 1] * points[i, 1] + rot[body, 2, 2] * points[i, 2]
+            + pos[body, 2])
 
 
 @inlined
@@ -207,7 +211,8 @@ def _pose(points, body, index, rot, pos, out):
         p = index[m]
         b = body[p]
         for r in range(3):
-            out[m, r] = rot[b, r, 0] * points[p, 0] + rot[b, r, 1] * points[p, 1] + rot[b, r, 2] * points[p, 2] + pos[b, r]
+            out[m, r] = (rot[b, r, 0] * points[p, 0] + rot[b, r, 1] * points[p, 1] + rot[b, r, 2] * points[p, 2]
+                         + pos[b, r])
 
 
 def _stack(names: tuple[str, ...], clouds: list[np.ndarray]) -> ProbeSet:

@@ -3,7 +3,7 @@
 built from a :class:`~retarget.inputs.readers.Demonstration` (probes, channels, OT correspondences,
 style targets), once per clip.
 
-Modes (METHOD.md "Modes"):
+Modes (docs/method.md "Modes"):
 
 * ``native`` (default): robot and scene at the captured metric scale; every manipulated object
   is a decision variable, static furniture stays a fixed channel.
@@ -26,12 +26,12 @@ from scipy.spatial import cKDTree
 from otr_gym import robot
 from otr_gym.robot_geometry import surface_margin_m, visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
-from retarget.inputs.demonstration import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
 from retarget.evaluation.feet import least_moving_speed
 from retarget.geometry.channels import Channel, GeometryConfig, GridStack, GroundChannel, SDFChannel
-from retarget.inputs.human_surface import HumanSurface
 from retarget.geometry.kinematics import NUM_LINKS, RobotKinematics, link_pairs_beyond
 from retarget.geometry.margins import ErrorMargin, cached_margin
+from retarget.inputs.demonstration import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
+from retarget.inputs.human_surface import HumanSurface
 from retarget.inputs.meshes import as_trimesh, object_mesh
 from retarget.solver.probes import (
     PointClusters,
@@ -46,8 +46,14 @@ from retarget.solver.probes import (
     robot_vertex_guards,
 )
 from retarget.solver.residuals import FIXED, InteractionConfig
-from retarget.solver.stance import (FootTurns, StanceConfig, demonstrated_roll, demonstrated_stance, demonstrated_turns,
-                             sole_points)
+from retarget.solver.stance import (
+    FootTurns,
+    StanceConfig,
+    demonstrated_roll,
+    demonstrated_stance,
+    demonstrated_turns,
+    sole_points,
+)
 from retarget.solver.style import StyleConfig, StyleTargets, pelvis_height_ratio, robot_style_targets
 from retarget.solver.substitute import Substitution, substitution_for
 
@@ -69,7 +75,7 @@ def link_clearance(clearance_m: dict[str, float]) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SolverConfig:
-    """SQP budget, trust region and constraint settings (eq. m-qp; METHOD.md "Solver")."""
+    """SQP budget, trust region and constraint settings (eq. m-qp; docs/method.md "Solver")."""
 
     #: Iterations on the cold-started first frame (Sec. III-D: 50) and on warm-started frames
     #: (ours: 3; the paper's 6). Measured on the five shared clips (``benchmarks/fidelity.py``,
@@ -419,8 +425,9 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                       objects=tuple(objects), style=targets, q_init=np.zeros(kin.nq), interaction=interaction,
                       style_cfg=style, solver=solver, band_m=geometry.band_m,
                       surface_margin=surface_margin_m() + link_clearance(solver.link_clearance_m),
-                      feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, sweep=sweep, turns=turns, stance_cfg=stance,
-                      self_pairs=link_pairs_beyond(kin.parents, 2), self_points=robot_self_points()[0], self_clusters=robot_self_points()[1],
+                      feet=np.asarray(feet, np.intp), soles=soles, stance=in_stance, sweep=sweep, turns=turns,
+                      stance_cfg=stance, self_pairs=link_pairs_beyond(kin.parents, 2),
+                      self_points=robot_self_points()[0], self_clusters=robot_self_points()[1],
                       contact_units=contact_units(), **unit_surface(demo.surface, scale))
     return replace(problem, q_init=initial_configuration(problem))
 

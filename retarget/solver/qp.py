@@ -12,8 +12,8 @@ import numpy as np
 
 from otr_gym import robot
 from otr_gym.rotations import so3_log
-from retarget.solver.iterate import FrameStats, SectionTimer, SolverState
 from retarget.geometry.kinematics import NUM_LINKS, LinkFrames
+from retarget.solver.iterate import FrameStats, SectionTimer, SolverState
 from retarget.solver.problem import Problem
 from retarget.solver.residuals import FIXED, Rows
 from retarget.solver.rows import Linearisation, rows_take

@@ -40,7 +40,7 @@ FIXED = -1
 
 @dataclass(frozen=True)
 class InteractionConfig:
-    """Weights and kernels of E_int (paper eq. m-energy; METHOD.md "Interaction residuals")."""
+    """Weights and kernels of E_int (paper eq. m-energy; docs/method.md "Interaction residuals and cost")."""
 
     #: (λ^d, λ^x, λ^n) for probes carried by the robot (eq. m-energy).
     robot_weights: tuple[float, float, float] = (256.0, 625.0, 2500.0)
@@ -458,7 +458,8 @@ def channel_twist_factors(grad_c: np.ndarray, point: np.ndarray, rot_c: np.ndarr
         return twist_factors(grad_c @ rot_c.T, x_w[point], origin_a[point], origin_b)
     phi = np.empty((len(grad_c), 12))
     _channel_twist_rows(grad_c, point, kernel_pose(rot_c), x_w, kernel_pose(origin_a),
-                        np.zeros(3) if origin_b is None else np.asarray(origin_b, np.float64), origin_b is not None, phi)
+                        np.zeros(3) if origin_b is None else np.asarray(origin_b, np.float64), origin_b is not None,
+                        phi)
     return phi
 
 

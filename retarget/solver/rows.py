@@ -31,9 +31,9 @@ from retarget.geometry.channels import (
     _prefetch_phi_cell,
     _trilinear_phi,
 )
-from retarget.solver.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.geometry.jit import helper, inlined, kernel_pose
 from retarget.geometry.kinematics import NUM_LINKS, LinkFrames
+from retarget.solver.iterate import SectionTimer, SolverState, channel_pose, frames_at
 from retarget.solver.probes import ProbeSet, _in_frame, _pose_in_frame, _posed_point
 from retarget.solver.problem import ChannelTrack, Problem
 from retarget.solver.residuals import (
@@ -327,8 +327,9 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         active = np.flatnonzero(q.in_band | targets.robot_active[c][sel])
         # Beyond the grid's band a pair active in the demonstration reads d = band with no
         # gradient: the distance to its demonstrated witness pulls it in instead (``far_field``),
-        # for the interaction and the contact-state rows alike. Without it the G1's pelvis and right knee stayed 19–22 cm
-        # from the chair the person leans on (a hold row with a zero Jacobian never moves them).
+        # for the interaction and the contact-state rows alike. Without it the G1's pelvis and
+        # right knee stayed 19–22 cm from the chair the person leans on (a hold row with a zero
+        # Jacobian never moves them).
         x_a = np.take(x_c, active, axis=0)
         desired = targets.robot[c].take(sel[active])
         pairs = _RobotPairs(c, rot_c, pos_c, sel[active], np.take(x_w, active, axis=0), x_a,
@@ -411,13 +412,15 @@ def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np
                                np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
                                np.take(problem.surface_margin, body))
     n = len(index)
-    value, phi, body, x_w, grad_c = np.empty(n), np.empty((n, 12)), np.empty(n, np.intp), np.empty((n, 3)), np.empty((n, 3))
+    value, phi, body, x_w, grad_c = (np.empty(n), np.empty((n, 12)), np.empty(n, np.intp), np.empty((n, 3)),
+                                     np.empty((n, 3)))
     if track.is_ground:
         grid, band = None, float(channel.band_m)
         phi_nodes, origin, inv, upper, strides = np.zeros(1), np.zeros(3), 0.0, np.zeros(3), np.zeros(3, np.intp)
     else:
         grid, band = channel.grid, float(channel.band_m)
-        phi_nodes, origin, inv, upper, strides = grid._phi, grid.origin, 1.0 / grid.resolution, grid._upper, grid._strides
+        phi_nodes, origin, inv, upper, strides = (grid._phi, grid.origin, 1.0 / grid.resolution, grid._upper,
+                                                  grid._strides)
     margin = track.margin
     m_origin, m_res, m_cells, m_values = ((margin.origin, float(margin.resolution), np.array(margin.cells, np.intp),
                                            margin.values) if margin is not None
@@ -426,7 +429,8 @@ def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np
     k = _guard_rows_into(guards.points, guards.body, np.asarray(index, np.intp), fr.rot, fr.pos,
                          kernel_pose(rot_c), kernel_pose(pos_c), grid is None, phi_nodes, origin,
                          inv, upper, strides, band, float(check), margin is not None,
-                         m_origin, m_res, m_cells, m_values, problem.surface_margin, moving, value, phi, body, x_w, grad_c)
+                         m_origin, m_res, m_cells, m_values, problem.surface_margin, moving,
+                         value, phi, body, x_w, grad_c)
     if k == 1:  # numpy turns a single row with another BLAS kernel (matrix-vector): as it does
         phi[:1] = twist_factors(grad_c[:1] @ rot_c.T, x_w[:1], fr.pos[body[:1]], pos_c if moving else None)
     return Rows(value[:k], np.ones(k), phi[:k], body[:k], np.full(k, track.body, dtype=np.intp))
@@ -479,7 +483,8 @@ def _guard_rows_into(points, point_body, index, rot, pos, rot_c, pos_c, ground, 
         out_grad[k, 0], out_grad[k, 1], out_grad[k, 2] = g0, g1, g2
         a0, a1, a2 = _to_world_direction(g0, g1, g2, rot_c)
         if moving:
-            _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], pos_c[0], pos_c[1], pos_c[2], out_phi, k)
+            _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], pos_c[0], pos_c[1], pos_c[2],
+                       out_phi, k)
         else:
             _twist_row(a0, a1, a2, w0, w1, w2, pos[b, 0], pos[b, 1], pos[b, 2], 0.0, 0.0, 0.0, out_phi, k)
             for j in range(6, 12):
@@ -692,8 +697,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
 
     object_counts = []
     for i in range(len(problem.objects)):
-        rows, pairs, n = _object_rows(problem, state, targets, i, None if counts is None else int(counts[NUM_LINKS + i]),
-                                      con)
+        rows, pairs, n = _object_rows(problem, state, targets, i,
+                                      None if counts is None else int(counts[NUM_LINKS + i]), con)
         cost += rows
         total_pairs += pairs
         object_counts.append(n)
@@ -741,7 +746,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     # E_sty,r and E_sty,o in one batch: the tracked links, then the free objects
     links = problem.style.links
     pos_weight, rot_weight = problem.style_weights
-    cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]), np.concatenate([fr.rot[links], state.obj_rot]),
+    cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]),
+                          np.concatenate([fr.rot[links], state.obj_rot]),
                           targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))
     com = None
     if targets.com is not None:
@@ -750,8 +756,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
         com = com_residual(problem.kin.model, state.com_data, state.q, targets.com)
     tm.lap("style_rows")
     return Linearisation(Rows.concat(cost), constraints, surface_channel, margin, fr,
-                         total_pairs, min_dist, min_self, np.concatenate([link_counts, np.asarray(object_counts, np.intp)]),
-                         contact, com)
+                         total_pairs, min_dist, min_self,
+                         np.concatenate([link_counts, np.asarray(object_counts, np.intp)]), contact, com)
 
 
 def object_guard_rows(problem: Problem, fr: LinkFrames, centre_w: np.ndarray, links: np.ndarray,
@@ -800,8 +806,9 @@ def _object_guard_rows_into(link, guard, g_w, rot, pos, phi, origin, inv_resolut
 
 @inlined
 def _link_grid_distance(w0, w1, w2, b, rot, pos, phi, origin, inv_resolution, upper, strides, offset):
-    """A world point in link b's frame (``_in_frame``) and ``GridStack.distance`` there: Φ, its gradient (zero outside the grid) and whether it lies
-    inside (outside, Φ of the cell of its projection, as the array form)."""
+    """A world point in link b's frame (``_in_frame``) and ``GridStack.distance`` there: Φ, its
+    gradient (zero outside the grid) and whether it lies inside (outside, Φ of the cell of its
+    projection, as the array form)."""
     x0, x1, x2 = _in_frame(w0, w1, w2, b, rot, pos)
     r, fx, fy, fz, inside = _cell_of(x0, x1, x2, b, origin, inv_resolution, upper, strides, offset)
     val, g0, g1, g2 = _trilinear_phi(phi, r, strides[b, 0], strides[b, 1], fx, fy, fz)
@@ -823,7 +830,8 @@ def _object_link_row(val, g0, g1, g2, w0, w1, w2, b, rot, pos, pos_c, surface_ma
     _twist_row(a0, a1, a2, w0, w1, w2, pos_c[0], pos_c[1], pos_c[2], pos[b, 0], pos[b, 1], pos[b, 2], out_phi, k)
 
 
-def _spheres_reach(centre: np.ndarray, radius: np.ndarray, x: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+def _spheres_reach(centre: np.ndarray, radius: np.ndarray, x: np.ndarray,
+                   reach: float) -> tuple[np.ndarray, np.ndarray]:
     """(sphere, point) index pairs, sphere-major as ``np.nonzero``, of the points x (G, 3) whose
     distance to a sphere (centre (l, 3), radius (l,)) is below ``reach``: ‖c − x‖ − r < reach."""
     out_s, out_p = np.empty(len(centre) * len(x), np.intp), np.empty(len(centre) * len(x), np.intp)

@@ -31,10 +31,10 @@ from threadpoolctl import threadpool_limits
 
 from otr_gym import robot
 from otr_gym.rotations import so3_exp, so3_log
+from retarget.geometry.kinematics import NUM_LINKS
 from retarget.solver.arm_seed import arm_links, seed_arms
 from retarget.solver.contact_annotation import frame_contacts
 from retarget.solver.iterate import FrameStats, SectionTimer, SolverState, frames_at, new_state, retract
-from retarget.geometry.kinematics import NUM_LINKS
 from retarget.solver.problem import Problem
 from retarget.solver.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
 from retarget.solver.rows import linearise, self_mesh_rows

@@ -301,7 +301,8 @@ def _stance_rows_into(link, points, target_w, gain, rot, pos, weight, out_value,
         b = link[k]
         x = np.empty(3)
         for i in range(3):
-            x[i] = ((rot[b, i, 0] * points[k, 0] + rot[b, i, 2] * points[k, 2]) + rot[b, i, 1] * points[k, 1]) + pos[b, i]
+            x[i] = (((rot[b, i, 0] * points[k, 0] + rot[b, i, 2] * points[k, 2]) + rot[b, i, 1] * points[k, 1])
+                    + pos[b, i])
         for a in range(3):
             if not np.isfinite(target_w[k, a]):
                 continue

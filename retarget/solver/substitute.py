@@ -42,8 +42,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from otr_gym.rotations import quat_apply, quat_from_rotvec
-from retarget.inputs.demonstration import Demonstration, DemoObject, InvalidDemonstrationError
 from retarget.geometry.channels import GeometryConfig, SDFChannel, sample_surface
+from retarget.inputs.demonstration import Demonstration, DemoObject, InvalidDemonstrationError
 from retarget.inputs.meshes import TriMesh, as_trimesh
 from retarget.inputs.shapes import ShapeSpec, substitute_mesh
 from retarget.solver.transport import TransportConfig, correspondence

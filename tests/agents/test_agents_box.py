@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from agents import episode_trace, runs
+from agents import runs
 from agents.config import train_config_from_dict
 from agents.episode_trace import CLIP_END, EpisodeTrace, trace_episode
 from agents.evaluate import evaluate
@@ -125,7 +125,8 @@ def test_an_episode_trace_agrees_with_the_evaluation_frame_by_frame(box_run, tmp
     assert len(joints) == 3 and abs(joints[0][1]) >= abs(joints[1][1]) >= abs(joints[2][1])
     j = robot.JOINT_NAMES.index(joints[0][0])
     assert joints[0][1] == pytest.approx(error[-5:, j].mean()) and joints[0][3] == pytest.approx(effort[-5:, j].max())
-    assert episode_trace.main([str(box_run), "--every", "5", "--json", str(tmp_path / "t.json"), "--png", str(tmp_path / "t.png")]) == 0
+    assert cli.main(["trace", str(box_run), "--every", "5", "--json", str(tmp_path / "t.json"),
+                     "--png", str(tmp_path / "t.png")]) == 0
     out = capsys.readouterr().out
     ee, cm = trace.worst_end_effector(4)
     assert f"| {ee} {cm:+.1f} |" in out  # the fifth step's row
@@ -148,11 +149,10 @@ def test_a_trace_from_a_later_frame_is_the_trace_of_the_clip_cut_there(box_run, 
     assert later.mpjpe_mm == pytest.approx(on_cut.mpjpe_mm, rel=1e-6)
     assert later.object_pos_error_cm == pytest.approx(on_cut.object_pos_error_cm, rel=1e-6)
     assert later.ended_by == on_cut.ended_by and later.success == on_cut.success
-    with pytest.raises(SystemExit):
-        episode_trace.main([str(box_run), "--start-frame", "-1"])
-    assert "--start-frame must be >= 0" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        episode_trace.main([str(box_run), "--start-frame", str(whole.num_frames - 1)])
+    with pytest.raises(SystemExit):  # a usage error
+        cli.main(["trace", str(box_run), "--start-frame", "-1"])
+    assert "argument --start-frame: must be >= 0" in capsys.readouterr().err
+    assert cli.main(["trace", str(box_run), "--start-frame", str(whole.num_frames - 1)]) == 2
     err = capsys.readouterr().err  # names the clip's file and the range
     assert Path(box_reference).name in err and f"frames {whole.num_frames - 1}:{whole.num_frames} are not" in err
 
@@ -172,7 +172,7 @@ def test_a_trace_marks_the_robot_object_windows_and_splits_the_object_error_by_t
     assert n_before == int((frames < 60).sum()) and n_before + n_in == trace.steps
     assert before_cm == pytest.approx(error[frames < 60].mean()) and in_cm == pytest.approx(error[frames >= 60].mean())
     assert before_share + in_share == pytest.approx(1.0)
-    assert episode_trace.main([str(box_run), "--start-frame", "55", "--png", str(tmp_path / "t.png")]) == 0
+    assert cli.main(["trace", str(box_run), "--start-frame", "55", "--png", str(tmp_path / "t.png")]) == 0
     out = capsys.readouterr().out
     assert f"before {before_cm:.1f} ({n_before} steps" in out and f"in window {in_cm:.1f} ({n_in} steps" in out
     assert (tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"

@@ -1,4 +1,4 @@
-"""PPO configuration: the YAML carries RL_SPEC §7, and rsl-rl-lib 5.x accepts the dict as is."""
+"""PPO configuration: the YAML carries docs/environment.md §7, and rsl-rl-lib 5.x accepts the dict as is."""
 
 from __future__ import annotations
 

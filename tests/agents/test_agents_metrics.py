@@ -70,8 +70,8 @@ def test_the_terminations_that_end_each_episode_are_counted_per_clip():
     # envs 0 and 1 already ended: their later terminations must not count; env 2 completes the clip
     later = {"anchor_height": torch.tensor([True, True, False, True]),
              "ee_height": torch.tensor([True, True, False, True])}
-    acc.end_step(terminated=torch.tensor([True, True, False, True]), truncated=torch.tensor([False, False, True, False]),
-                 fired=later)
+    acc.end_step(terminated=torch.tensor([True, True, False, True]),
+                 truncated=torch.tensor([False, False, True, False]), fired=later)
     out = acc.per_env()
     assert out["ended_by"]["anchor_height"].tolist() == [True, False, False, True]
     assert out["ended_by"]["ee_height"].tolist() == [True, True, False, True]

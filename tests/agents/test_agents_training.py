@@ -29,7 +29,7 @@ from agents.vecenv import RslRlVecEnv, make_vec_env
 from otr_gym import cli, robot
 
 NUM_ENVS = 16
-UPDATES_PER_ITERATION = 5 * 4  # RL_SPEC §7: 5 epochs x 4 minibatches, one Adam step each
+UPDATES_PER_ITERATION = 5 * 4  # docs/environment.md §7: 5 epochs x 4 minibatches, one Adam step each
 SAMPLES_PER_ITERATION = NUM_ENVS * 24
 
 

@@ -1,7 +1,6 @@
 """benchmarks/train_box_gpus.sh: the _q0 / _xy suffixes compose with every base job, every job's
 --set overrides load into the box config (a typo would only surface on the GPU), and `pack` returns
 each resumable run's checkpoint in a file of its own."""
-from conftest import REPO_ROOT
 import os
 import subprocess
 import tarfile
@@ -13,6 +12,8 @@ from agents.config import load_train_config
 from agents.train import parse_sets
 from envs.config import load_env_config
 from otr_gym.config import merge
+
+from conftest import REPO_ROOT
 
 SCRIPT = REPO_ROOT / "benchmarks" / "train_box_gpus.sh"
 

@@ -16,6 +16,7 @@ import torch
 from agents import distributed, runs
 from agents.plots import read_scalars
 from otr_gym import cli
+
 from conftest import REPO_ROOT
 
 NUM_ENVS = 8

@@ -9,6 +9,7 @@ from torch.utils.tensorboard import SummaryWriter
 
 from agents import plots
 from agents.runs import RunError
+from otr_gym import cli
 
 
 def _fake_run(path, collection_s, learning_s, success):
@@ -65,10 +66,9 @@ def test_runs_are_drawn_against_learning_time(tmp_path, monkeypatch):
 def test_the_cli_compares_several_runs_and_keeps_json_to_one(tmp_path, capsys):
     a = _fake_run(tmp_path / "a", [6.0] * 2, [0.0] * 2, [0.1, 0.2])
     b = _fake_run(tmp_path / "b", [6.0] * 2, [0.0] * 2, [0.3, 0.4])
-    assert plots.main([str(a), str(b), "--png", str(tmp_path / "ab.png")]) == 0
+    assert cli.main(["plot", str(a), str(b), "--png", str(tmp_path / "ab.png")]) == 0
     assert (tmp_path / "ab.png").stat().st_size > 0
-    with pytest.raises(SystemExit):
-        plots.main([str(a), str(b), "--png", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")])
+    assert cli.main(["plot", str(a), str(b), "--png", str(tmp_path / "c.png"), "--json", str(tmp_path / "c.json")]) == 2
     assert "one run" in capsys.readouterr().err
 
 
@@ -94,5 +94,5 @@ def test_runs_are_drawn_against_the_iteration_when_asked(tmp_path, monkeypatch):
     assert drawn["lines"] == {"fast": [0, 1, 2, 3], "untimed": [0, 1]}
     with pytest.raises(ValueError, match="x axis 'steps'"):
         plots.plot_runs([fast], tmp_path / "z.png", x="steps")
-    assert plots.main([str(fast), str(untimed), "--x", "iteration", "--png", str(tmp_path / "cli.png")]) == 0
+    assert cli.main(["plot", str(fast), str(untimed), "--x", "iteration", "--png", str(tmp_path / "cli.png")]) == 0
     assert drawn["lines"]["untimed"] == [0, 1]

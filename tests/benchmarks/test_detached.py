@@ -7,6 +7,7 @@ import subprocess
 import time
 
 import pytest
+
 from conftest import REPO_ROOT
 
 SCRIPT = REPO_ROOT / "benchmarks" / "detached.sh"

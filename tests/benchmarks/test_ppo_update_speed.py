@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import pytest
+
 from conftest import load_benchmark
 
 SMALL = {"device": "cpu", "num_envs": 64, "steps": 4, "epochs": 1, "mini_batches": 2, "updates": 1}

@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from conftest import BOX_HALF_M, benchmark_sets
 from gymnasium.utils.env_checker import check_env
 
 import otr_gym  # noqa: F401  (registers the environments)
@@ -31,6 +30,8 @@ from envs.mdp.state import ObjectState
 from envs.objects import object_qpos
 from otr_gym.reference import InvalidReferenceError, Reference
 from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_mul
+
+from conftest import BOX_HALF_M, benchmark_sets
 
 
 def _cfg(**command) -> BoxEnvCfg:
@@ -96,9 +97,10 @@ def test_box_like_meshes_become_boxes_and_others_convex_hulls(tmp_path):
     assert method == "box" and np.allclose(np.sort(2 * shapes[0].half_extents), [0.3, 0.35, 0.4], atol=1e-6)
     open_box = trimesh.Trimesh(box.vertices, box.faces[box.face_normals[:, 2] > -0.5])  # a scan without bottom
     assert collision_shapes(open_box.vertices, open_box.faces, "open box")[1] == "box"
-    legs = trimesh.util.concatenate([trimesh.creation.box(extents=(0.04, 0.04, 0.7),
-                                                          transform=trimesh.transformations.translation_matrix((x, 0, 0)))
-                                     for x in (0.0, 0.5)])
+    legs = trimesh.util.concatenate([
+        trimesh.creation.box(extents=(0.04, 0.04, 0.7),
+                             transform=trimesh.transformations.translation_matrix((x, 0, 0)))
+        for x in (0.0, 0.5)])
     shapes, method = collision_shapes(legs.vertices, legs.faces, "legs")
     assert method == "boxes" and len(shapes) == 2
     torus = trimesh.creation.torus(0.2, 0.05, major_sections=24, minor_sections=12)
@@ -193,8 +195,8 @@ def _object_state(hand_gate, hand_force_n, hand_offset_m, grip_force_n=None) -> 
     target = torch.zeros(n, 2, 1, 3)
     hand = torch.zeros(n, 2, 3)
     hand[:, :, 0] = hand_offset_m[:, None]
-    return SimpleNamespace(objects=ObjectState(names=("box",), support_names=(), pos_w=zeros3, quat_w=ident, lin_vel_w=zeros3,
-                       ang_vel_w=zeros3, ref_pos_w=zeros3, ref_quat_w=ident, ref_lin_vel_w=zeros3,
+    return SimpleNamespace(objects=ObjectState(names=("box",), support_names=(), pos_w=zeros3, quat_w=ident,
+                       lin_vel_w=zeros3, ang_vel_w=zeros3, ref_pos_w=zeros3, ref_quat_w=ident, ref_lin_vel_w=zeros3,
                        ref_ang_vel_w=zeros3, hand_pos_w=hand, hand_target_w=target, hand_gate=hand_gate,
                        hand_force_n=hand_force_n, support_gate=torch.zeros(n, 1, 0),
                        support_force_n=torch.zeros(n, 1, 0), static_pos_w=torch.zeros(0, 3),
@@ -409,8 +411,7 @@ def test_rendered_frame_shows_the_box_and_its_reference_ghost(box_reference):
 def test_both_backends_put_the_objects_on_the_reference_and_agree_on_their_state(box_reference):
     """Same start (no reset noise), same actions: object poses, velocities and contact forces
     of CPU MuJoCo and MuJoCo-Warp agree; the first MuJoCo-Warp use compiles kernels (~1 min)."""
-    wp = pytest.importorskip("warp")
-    wp.config.quiet = True
+    pytest.importorskip("warp")
     cfg = _cfg(reset_noise_enabled=False, start="uniform")
     cfg.randomization.enabled = False
     cpu = make_box_task(box_reference, 3, "mujoco", "cpu", cfg=cfg, seed=4)

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 import torch
 import yaml
-from conftest import benchmark_sets
 
 from agents.config import load_train_config
 from envs.config import DEFAULT_CONFIG, CommandCfg, TrackEnvCfg, load_track_config
@@ -27,6 +26,8 @@ from envs.mdp.state import TrackingState, aligned_targets
 from otr_gym import robot
 from otr_gym.reference import InvalidReferenceError, Reference
 from otr_gym.rotations import quat_from_euler_xyz, quat_mul
+
+from conftest import benchmark_sets
 
 TRACKED = robot.TRACKED_BODIES
 ANCHOR = TRACKED.index(robot.ANCHOR_BODY)
@@ -384,7 +385,8 @@ def test_mpjpe_is_root_relative():
 def test_anchor_offset_is_split_along_the_reference_heading_and_ignores_height():
     s = _state(n=3)
     q = s.ref_anchor_quat_w
-    heading = torch.atan2(2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2))  # yaw (wxyz)
+    # yaw (wxyz)
+    heading = torch.atan2(2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2))
     forward = torch.stack([torch.cos(heading), torch.sin(heading), torch.zeros(3)], -1)
     left = torch.stack([-torch.sin(heading), torch.cos(heading), torch.zeros(3)], -1)
     # the robot 20 cm behind its reference, 5 cm to its left and 30 cm higher

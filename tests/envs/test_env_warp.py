@@ -22,7 +22,6 @@ from envs.tracking import make_task
 from otr_gym import robot
 
 wp = pytest.importorskip("warp")
-wp.config.quiet = True
 
 NUM_ENVS = 3
 
@@ -189,7 +188,8 @@ def test_joint_torques_are_the_last_substeps_pd_forces_clamped_to_the_effort_lim
     cpu = MuJoCoBackend(model, 2, contact_bodies=bodies)
     warp_backend = WarpBackend(model, 2, "cpu", contact_bodies=bodies)
     gen = torch.Generator().manual_seed(1)
-    ctrl = torch.as_tensor(robot.DEFAULT_JOINT_POS, dtype=torch.float32) + 3.0 * (2 * torch.rand(2, 29, generator=gen) - 1)
+    ctrl = (torch.as_tensor(robot.DEFAULT_JOINT_POS, dtype=torch.float32)
+            + 3.0 * (2 * torch.rand(2, 29, generator=gen) - 1))
     for backend in (cpu, warp_backend):
         backend.step(ctrl)
     by_hand = np.zeros((2, 29))
@@ -224,3 +224,39 @@ def test_a_missing_device_fails_with_a_message_listing_the_available_ones(standi
                            reference=standing_reference)
     with pytest.raises(ValueError, match="mujoco backend runs on the CPU only"):
         make_task(standing_reference, 2, "mujoco", "cuda")
+
+
+_START_A_BACKEND = """
+import torch
+from envs.backends import build_sim_model
+from envs.backends.warp_backend import WarpBackend
+from envs.config import TrackEnvCfg
+from otr_gym import robot
+
+bodies = TrackEnvCfg().sim.contact_bodies
+backend = WarpBackend(build_sim_model(bodies), 2, "cpu", contact_bodies=bodies)
+backend.step(torch.as_tensor(robot.DEFAULT_JOINT_POS, dtype=torch.float32).repeat(2, 1))
+"""
+
+
+@pytest.mark.slow
+def test_starting_the_warp_backend_prints_no_module_lines_unless_asked():
+    """Fresh processes (Warp prints a module's line at its first load in a process, compiled or
+    cached): none by default, Warp's own lines with OTR_WARP_VERBOSE=1. 35 s on 2 cores with a warm
+    kernel cache, 2 min with a cold one."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import REPO_ROOT
+
+    def start(env: dict) -> str:
+        run = subprocess.run([sys.executable, "-c", _START_A_BACKEND], capture_output=True, text=True, env=env,
+                             cwd=REPO_ROOT, timeout=900)
+        assert run.returncode == 0, run.stderr[-2000:]
+        return run.stdout + run.stderr
+
+    quiet = start({k: v for k, v in os.environ.items() if k != "OTR_WARP_VERBOSE"})
+    assert "Module " not in quiet, quiet[:2000]
+    verbose = start({**os.environ, "OTR_WARP_VERBOSE": "1"})
+    assert verbose.count("Module ") >= 10  # the lines the default removes

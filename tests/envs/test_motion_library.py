@@ -70,7 +70,7 @@ def test_a_two_clip_library_trains_with_per_clip_metrics(library_run, library_di
     assert info["labels"] == ["hover", "stand"]
     # the broken file is reported by name, with why, and left out
     assert [s["clip"] for s in info["skipped"]] == [str(library_dir / "broken.npz")]
-    assert "not a readable .npz" in info["skipped"][0]["error"]
+    assert "not a NumPy .npz archive" in info["skipped"][0]["error"]
     scalars = read_scalars(library_run)
     for clip in ("hover", "stand"):
         for name in ("mpjpe_mm", "success_rate", "episode_length_s", "start_probability"):
@@ -134,7 +134,7 @@ def test_clip_failure_bins_cover_each_clip_with_the_samplers_bins():
 
 
 def test_the_failure_maps_starts_are_the_samplers():
-    """The starts that agents.failure_bins shows are the distribution MotionCommand draws from,
+    """The starts that otr failure-map shows are the distribution MotionCommand draws from,
     for the same failure rates, under either floor rule and a start kernel."""
     refs = [standing_reference(duration_s=99 / 50), standing_reference(duration_s=249 / 50)]
     motion = MotionLibrary.from_references(refs, robot.TRACKED_BODIES, 50.0)
@@ -165,7 +165,7 @@ def test_a_runs_failure_map_names_the_clip_and_seconds_that_fail(library_run, li
     run = shutil.copytree(library_run, tmp_path / library_run.name)
     torch.save(saved, run / ckpt.path.name)
     png, out = tmp_path / "bins.png", tmp_path / "bins.json"
-    assert failure_bins.main([str(run / ckpt.path.name), "--png", str(png), "--json", str(out)]) == 0
+    assert cli.main(["failure-map", str(run / ckpt.path.name), "--png", str(png), "--json", str(out)]) == 0
     table = capsys.readouterr().out
     hover_line = next(line for line in table.splitlines() if line.startswith("hover"))
     # starts under the run's rule (relative floor r, clip floor β): hover's failure mass is
@@ -185,20 +185,20 @@ def test_a_runs_failure_map_names_the_clip_and_seconds_that_fail(library_run, li
     assert [b["failures_per_step"] for b in bins] == [0.0, 0.0, 0.5, 0.0]
     assert bins[2]["start_share"] == pytest.approx(third_bin) and saved_map["library_clip_floor"] == beta
     # another floor, the same failures: with β = 0 the clips share by their mass alone
-    assert failure_bins.main([str(run), "--clip-floor", "0", "--json", str(out)]) == 0
+    assert cli.main(["failure-map", str(run), "--clip-floor", "0", "--json", str(out)]) == 0
     assert "starts under library_clip_floor 0 (--clip-floor)" in capsys.readouterr().out
     what_if = json.loads(out.read_text())["clips"]
     assert what_if[0]["start_share"] == pytest.approx((r + 0.5) / (2 * r + 0.5))
     assert what_if[0]["bins"][2]["failures_per_step"] == 0.5  # the failures are the run's
-    assert failure_bins.main([str(run), "--clip-floor", "1.5"]) == 2
+    assert cli.main(["failure-map", str(run), "--clip-floor", "1.5"]) == 2
     assert "--clip-floor must lie in [0, 1], got 1.5" in capsys.readouterr().err
     # clips of another library do not fit the checkpoint's bins: refused, nothing written
-    assert failure_bins.main([str(run), "--reference", str(library_dir / "stand.npz")]) == 2
+    assert cli.main(["failure-map", str(run), "--reference", str(library_dir / "stand.npz")]) == 2
     assert "not this run's library" in capsys.readouterr().err
     # a truncated checkpoint is named, not a traceback
     broken = run / "model_9.pt"
     broken.write_bytes((run / ckpt.path.name).read_bytes()[:100])
-    assert failure_bins.main([str(broken)]) == 2
+    assert cli.main(["failure-map", str(broken)]) == 2
     assert f"{broken}: not a readable checkpoint" in capsys.readouterr().err
 
 
@@ -377,7 +377,8 @@ def test_evaluating_a_library_runs_checkpoints_draws_each_clips_progress(library
     final = {c["clip"]: c for c in results["final"]["clips"]}
     assert final["hover"]["clip_frames"] == 151 and final["stand"]["clip_frames"] == 101
     hover = final["hover"]  # the floating clip: the robot falls within ~0.25 s
-    assert tracked_share(hover) == pytest.approx(hover["frames"] / (hover["envs"] * 150)) and tracked_share(hover) < 0.15
+    assert (tracked_share(hover) == pytest.approx(hover["frames"] / (hover["envs"] * 150))
+            and tracked_share(hover) < 0.15)
     its, minutes = learning_minutes(read_scalars(library_run))
     assert checkpoint_minutes(results) == [minutes[its.index(e["iteration"])] for e in results["checkpoints"]]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -417,7 +418,7 @@ def test_policy_only_checkpoints_evaluate_like_the_full_ones_and_refuse_to_resum
     capsys.readouterr()
     assert cli.main(["train", "--resume", str(full), "--iterations", "1", "--device", "cpu"]) == 2
     assert f"{full}: a policy-only checkpoint" in capsys.readouterr().err
-    assert runs.main(["policy-only", str(run), "--every", "0", "--out", str(tmp_path / "x")]) == 1
+    assert cli.main(["runs", "policy-only", str(run), "--every", "0", "--out", str(tmp_path / "x")]) == 1
 
 
 def test_play_records_the_chosen_clip_of_a_library(library_run, tmp_path):

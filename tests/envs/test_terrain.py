@@ -161,8 +161,7 @@ def test_a_cube_dropped_above_the_ramp_rests_on_its_surface_on_mujoco(slope_mesh
 
 
 def test_mujoco_warp_agrees_on_where_the_cube_rests(slope_mesh):
-    wp = pytest.importorskip("warp")
-    wp.config.quiet = True
+    pytest.importorskip("warp")
     from envs.backends.warp_backend import WarpBackend
 
     model = _drop_model(slope_mesh)
@@ -280,9 +279,9 @@ def test_a_run_records_its_terrain_with_absolute_paths(platform_clips, tmp_path,
     train.configure_parser(parser)
     args = parser.parse_args(["--reference", str(flat), str(raised), "--set",
                               f"env.terrain.meshes.platform_walk={mesh.name}"])
-    cfg, _, _, _, record = train._setup(args)
-    assert record["train"]["env"]["terrain"]["meshes"] == {"platform_walk": str(mesh)}
-    assert load_track_config(overrides=cfg.env).terrain.meshes == {"platform_walk": str(mesh)}
+    setup = train._setup(args)
+    assert setup.record["train"]["env"]["terrain"]["meshes"] == {"platform_walk": str(mesh)}
+    assert load_track_config(overrides=setup.cfg.env).terrain.meshes == {"platform_walk": str(mesh)}
 
 
 def test_play_renders_the_terrain_and_the_sim_robot_stands_on_it(platform_clips, tmp_path):

@@ -1,16 +1,21 @@
-"""The ``otr`` command line: help, inspect and the demo job."""
+"""The ``otr`` command line: help, inspect, the demo job, run folders and procedural clips."""
 
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import imageio.v3 as iio
 import numpy as np
+import pytest
 
 from otr_gym import robot
 from otr_gym.cli import main
 from otr_gym.reference import Reference
 from retarget.inputs.demonstration import Demonstration
+
+from conftest import REPO_ROOT
 
 
 def test_help_lists_every_available_command(capsys):
@@ -49,3 +54,39 @@ def test_demo_retargets_pictures_and_scores_the_embedded_walk(tmp_path, capsys):
     assert record["metrics"]["ground_jaccard"] > 0.9  # the feet keep the demonstrated floor contacts
     assert (tmp_path / "walk_contacts.png").stat().st_size > 10_000
     assert "walk" in capsys.readouterr().out.splitlines()[-1]  # the table's row
+
+
+def test_otr_runs_latest_prints_the_checkpoint_of_the_highest_iteration(tmp_path, capsys):
+    for name in ("model_975.pt", "model_1204.pt", "model_50.pt"):  # a plain sort would pick model_975
+        (tmp_path / name).write_bytes(b"")
+    assert main(["runs", "latest", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip() == str(tmp_path / "model_1204.pt")
+
+
+def test_otr_runs_latest_of_a_folder_without_checkpoints_fails_naming_it(tmp_path, capsys):
+    assert main(["runs", "latest", str(tmp_path)]) == 1
+    assert str(tmp_path) in capsys.readouterr().err
+
+
+def test_python_m_otr_gym_cli_is_the_otr_command_where_nothing_is_installed(tmp_path):
+    """The GPU machines of benchmarks/ run ``python -m otr_gym.cli COMMAND`` from the repository root."""
+    (tmp_path / "model_7.pt").write_bytes(b"")
+    done = subprocess.run([sys.executable, "-m", "otr_gym.cli", "runs", "latest", str(tmp_path)], cwd=REPO_ROOT,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == str(tmp_path / "model_7.pt")
+
+
+def test_otr_procedural_writes_a_standing_clip_of_the_duration_asked(tmp_path, capsys):
+    assert main(["procedural", "stand", str(tmp_path / "stand.npz"), "--duration", "1"]) == 0
+    ref = Reference.load(tmp_path / "stand.npz")
+    assert ref.num_frames == 51 and ref.fps == 50
+    assert np.ptp(ref.joint_pos, axis=0).max() == 0.0  # held still
+    assert "51 frames at 50 fps" in capsys.readouterr().out
+
+
+def test_a_count_below_its_minimum_is_a_usage_error_naming_the_option(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["trace", str(tmp_path), "--every", "0"])
+    assert exit_.value.code == 2
+    assert "argument --every: must be >= 1, got 0" in capsys.readouterr().err

@@ -9,7 +9,6 @@ stays in the model, colliding with nothing, for the retargeter's coarse self-col
 
 from __future__ import annotations
 
-
 import mujoco
 import numpy as np
 import pytest
@@ -18,7 +17,6 @@ import trimesh
 
 from otr_gym.robot import G1_MJCF
 from otr_gym.robot_geometry import collision_capsules
-
 
 
 def _model() -> mujoco.MjModel:

@@ -30,7 +30,8 @@ def box_track(T: int) -> ObjectTrack:
     pos = np.stack([0.5 + 0.2 * t, 0 * t, 0.2 + 0.5 * t], axis=1)
     quat = quat_from_rotvec(np.stack([0 * t, 0 * t, 0.5 * t], axis=1))
     return ObjectTrack("box", pos, quat, np.zeros_like(pos), np.zeros_like(pos),
-                       mesh_vertices=np.random.default_rng(0).normal(size=(8, 3)), mesh_faces=np.arange(12).reshape(4, 3) % 8)
+                       mesh_vertices=np.random.default_rng(0).normal(size=(8, 3)),
+                       mesh_faces=np.arange(12).reshape(4, 3) % 8)
 
 
 @pytest.fixture(scope="module")
@@ -85,7 +86,8 @@ def test_our_files_use_the_holosoma_keys_and_conventions(reference, tmp_path):
 
 
 def test_holosoma_references_load_unchanged(shared_data):
-    for name, bodies, has_object in (("sub3_largebox_003_mj_w_obj.npz", 52, True), ("motion_crawl_slope.npz", 51, False)):
+    for name, bodies, has_object in (("sub3_largebox_003_mj_w_obj.npz", 52, True),
+                                     ("motion_crawl_slope.npz", 51, False)):
         path = shared_data / "references" / "holosoma" / name
         ref = Reference.load(path)
         with np.load(path) as raw:
@@ -165,7 +167,7 @@ def test_missing_and_corrupt_files_are_named(tmp_path):
         Reference.load(tmp_path / "nowhere.npz")
     corrupt = tmp_path / "corrupt.npz"
     corrupt.write_bytes(b"PK\x03\x04 definitely not a zip")
-    with pytest.raises(InvalidReferenceError, match="corrupt.npz: not a readable .npz"):
+    with pytest.raises(InvalidReferenceError, match="corrupt.npz: not a NumPy .npz archive"):
         Reference.load(corrupt)
 
 

@@ -8,10 +8,9 @@ import pinocchio as pin
 import pytest
 
 from otr_gym import robot
-from otr_gym.scene import robot_model
 from otr_gym.robot_geometry import collision_capsules, visual_meshes
 from otr_gym.rotations import matrix_to_quat, quat_error_angle, quat_from_rotvec
-from otr_gym.scene import ObjectSpec, SceneSpec, TableSpec, build_scene
+from otr_gym.scene import ObjectSpec, SceneSpec, TableSpec, build_scene, robot_model
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +54,7 @@ def test_joint_and_body_order_of_the_mjcf_is_the_spec_order(mj_model):
 
 
 def test_gains_follow_the_reflected_inertia_derivation_of_the_rl_spec():
-    # RL_SPEC §1 table: kp, kd, armature, action scale for hip_pitch, knee, ankle, shoulder, wrist_pitch
+    # docs/environment.md §1 table: kp, kd, armature, action scale for hip_pitch, knee, ankle, shoulder, wrist_pitch
     expected = {
         "left_hip_pitch_joint": (40.179, 2.558, 0.010178, 0.5475),
         "left_knee_joint": (99.098, 6.309, 0.025102, 0.3507),
@@ -73,7 +72,7 @@ def test_gains_follow_the_reflected_inertia_derivation_of_the_rl_spec():
 
 
 def test_mjcf_actuators_apply_the_spec_pd_law(mj_model):
-    for i, name in enumerate(robot.JOINT_NAMES):
+    for i in range(len(robot.JOINT_NAMES)):
         assert mj_model.actuator_gainprm[i, 0] == pytest.approx(robot.KP[i], rel=1e-6)
         assert mj_model.actuator_biasprm[i, 1] == pytest.approx(-robot.KP[i], rel=1e-6)
         assert mj_model.actuator_biasprm[i, 2] == pytest.approx(-robot.KD[i], rel=1e-6)

@@ -185,7 +185,8 @@ def test_yaw_is_aligned_at_policy_start(spec, stand):
     seen = {}
     for yaw in (0.0, np.pi / 2):
         obs = []
-        c = make(spec, stand, auto_start=True, policy=lambda o: (obs.append(o), np.zeros(29, np.float32))[1])
+        c = make(spec, stand, auto_start=True,
+                 policy=lambda o, obs=obs: (obs.append(o), np.zeros(29, np.float32))[1])
         run(c, 8, s=state(quat=quat_from_yaw(np.float64(yaw))))
         seen[yaw] = obs[-1]
         assert c.builder.mpjpe_m(c.builder.tracking_state(state(quat=quat_from_yaw(np.float64(yaw))), 2,

@@ -10,18 +10,18 @@ import json
 import mujoco
 import numpy as np
 import pytest
-from conftest import lowest_collision_reach
 
-from otr_gym import robot
+from otr_gym import cli, robot
 from otr_gym.reference import Reference
 from otr_gym.rotations import quat_from_euler_xyz
-from retarget.checks import verify
 from retarget.checks.feasibility import (
     GRAVITY,
     FeasibilityCfg,
     check_feasibility,
     format_report,
 )
+
+from conftest import lowest_collision_reach
 
 FPS = 50.0
 ELBOW = robot.JOINT_NAMES.index("left_elbow_joint")
@@ -244,7 +244,7 @@ def test_verify_prints_the_section_and_writes_picture_and_summary(tmp_path, caps
     qpos[25:, 1] += 0.10
     path = _ref(qpos).save(tmp_path / "teleport.npz")
     png, js = tmp_path / "feasibility.png", tmp_path / "feasibility.json"
-    assert verify.main([str(path), "--feasibility-png", str(png), "--feasibility-json", str(js)]) == 0
+    assert cli.main(["verify", str(path), "--feasibility-png", str(png), "--feasibility-json", str(js)]) == 0
     out = capsys.readouterr().out
     assert "dynamic feasibility at 50 fps" in out and "hardest frames" in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -9,9 +9,8 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from otr_gym import robot
+from otr_gym import cli, robot
 from otr_gym.reference import Reference
-from retarget.checks import verify
 from retarget.checks.feasibility import FeasibilityCfg, check_feasibility
 from retarget.checks.ground import Ground
 from retarget.inputs.meshes import InvalidMeshError
@@ -66,8 +65,8 @@ def test_bad_terrain_files_are_named(tmp_path, capsys):
     with pytest.raises(ValueError, match="wall.obj: terrain mesh has no upward-facing triangle"):
         Ground.from_mesh(_save(wall, tmp_path / "wall.obj"))
     clip = Reference.from_qpos(np.tile(robot.default_qpos(), (10, 1)), 50.0).save(tmp_path / "clip.npz")
-    assert verify.main([str(clip), "--terrain", str(tmp_path / "missing.obj")]) == 2
-    assert verify.main([str(tmp_path / "no_such_clip.npz")]) == 2
+    assert cli.main(["verify", str(clip), "--terrain", str(tmp_path / "missing.obj")]) == 2
+    assert cli.main(["verify", str(tmp_path / "no_such_clip.npz")]) == 2
     err = capsys.readouterr().err
     assert "missing.obj: mesh file not found" in err and "no_such_clip.npz" in err
 

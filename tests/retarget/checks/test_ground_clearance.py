@@ -5,17 +5,16 @@ from __future__ import annotations
 
 import json
 
-
 import numpy as np
 import pytest
-from conftest import SHARED_DATA, load_benchmark, lowest_collision_reach
 
 from otr_gym import cli, robot
 from otr_gym.reference import Reference
-from retarget.checks import ground_clearance
 from retarget.checks.feasibility import check_feasibility
 from retarget.checks.ground import Ground
 from retarget.checks.ground_clearance import ARM_BODIES, ARM_JOINTS, ClearanceCfg, clear_ground
+
+from conftest import SHARED_DATA, load_benchmark, lowest_collision_reach
 
 FPS = 50.0
 CRAWL = SHARED_DATA / "references" / "holosoma" / "motion_crawl_slope.npz"
@@ -85,9 +84,9 @@ def test_a_joint_already_beyond_its_limit_is_not_pushed_farther():
 
 
 def test_the_command_names_a_missing_file_and_refuses_a_negative_clearance(tmp_path, capsys):
-    assert ground_clearance.main([str(tmp_path / "none.npz"), str(tmp_path / "out.npz")]) == 2
+    assert cli.main(["clear-ground", str(tmp_path / "none.npz"), str(tmp_path / "out.npz")]) == 2
     assert "none.npz" in capsys.readouterr().err
-    assert ground_clearance.main([str(tmp_path / "none.npz"), str(tmp_path / "out.npz"), "--clearance-m", "-1"]) == 2
+    assert cli.main(["clear-ground", str(tmp_path / "none.npz"), str(tmp_path / "out.npz"), "--clearance-m", "-1"]) == 2
     assert "--clearance-m must be >= 0" in capsys.readouterr().err
     assert not (tmp_path / "out.npz").exists()
 

@@ -10,12 +10,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from clips import clip
 
 from otr_gym.reference import Reference
 from retarget.cli.retarget import configure_parser, main
 from retarget.clip import retarget_demonstration
-from retarget.config import CONFIG_DIR, ConfigError, load_config, RetargetConfig
+from retarget.config import CONFIG_DIR, ConfigError, RetargetConfig, load_config
+
+from clips import clip
 
 EPS_COL = 3e-4
 
@@ -48,7 +49,8 @@ def test_unknown_config_key_is_named(tmp_path):
 def test_unknown_link_grouping_is_named_with_the_choices(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("links_together: arms\n")
-    with pytest.raises(ConfigError, match=r"unknown links_together 'arms' \(choose from \['hand', 'none', 'shared_parts'\]\)"):
+    with pytest.raises(ConfigError,
+                       match=r"unknown links_together 'arms' \(choose from \['hand', 'none', 'shared_parts'\]\)"):
         load_config(bad)
     assert load_config(links_together="hand").links_together == "hand"
 
@@ -134,9 +136,9 @@ def test_omomo_clip_without_its_object_mesh_is_named(shared_data, tmp_path):
 def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(shared_data, largebox_reference):
     """OMOMO sub3_largebox_003, box free, native scale (the figures quoted in the report)."""
     from otr_gym.reference import Reference
+    from retarget.checks.verify import check_reference
     from retarget.inputs.readers import load_demonstration
     from retarget.solver.problem import resample_demonstration
-    from retarget.checks.verify import check_reference
 
     demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
     ref = Reference.load(largebox_reference)
@@ -151,12 +153,12 @@ def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(sh
 
 
 def test_verify_cli_prints_the_checks_of_a_retargeted_walk(tiny, tmp_path, capsys):
-    from retarget.checks.verify import main as verify_main
+    from otr_gym import cli
 
     out = tmp_path / "out"
     assert main(_args(str(tiny / "walk_a.npz"), "--out", str(out))) == 0
     capsys.readouterr()
-    assert verify_main([str(out / "walk_a.npz"), "--demo", str(tiny / "walk_a.npz")]) == 0
+    assert cli.main(["verify", str(out / "walk_a.npz"), "--demo", str(tiny / "walk_a.npz")]) == 0
     rows = dict(line.split(None, 1) for line in capsys.readouterr().out.splitlines())
     assert rows["ground_penetration_mesh_m"].split()[1] == "ok"
     assert float(rows["ground_penetration_mesh_m"].split()[0]) <= EPS_COL

@@ -11,19 +11,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import zipfile
 import signal
+import zipfile
 from pathlib import Path
 
 import numpy as np
 import pytest
-from clips import clip
 
 from otr_gym.io import npz_bytes
-from retarget.cli.batch import Job, SUMMARY_NAME, Task
+from retarget.cli.batch import SUMMARY_NAME, Job, Task
 from retarget.cli.executors import RayExecutor
 from retarget.cli.retarget import configure_parser, main
 from retarget.config import load_config
+
+from clips import clip
 
 ray = pytest.importorskip("ray", reason="ray is not installed (pip install 'otr-gym[cluster]')")
 

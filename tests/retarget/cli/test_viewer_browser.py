@@ -19,14 +19,13 @@ import pytest
 
 from otr_gym import robot
 from otr_gym.reference import ContactAnnotations, Reference
+from retarget.cli.viewer import CHROMIUM_ARGS, GROUND_COLOUR, open_viewer
 
 CHROMIUM = Path("/usr/bin/chromium")
 pytest.importorskip("viser", reason="viser is not installed (pip install 'otr-gym[viewer]')")
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright is not installed (pip install playwright)")
 if not CHROMIUM.is_file():
     pytest.skip(f"{CHROMIUM} is absent (Debian: apt-get install chromium)", allow_module_level=True)
-
-from retarget.cli.viewer import CHROMIUM_ARGS, GROUND_COLOUR, open_viewer
 
 CONTACT_LINK = "left_ankle_roll_link"
 
@@ -117,11 +116,10 @@ def test_slider_moves_the_robot_and_an_annotated_contact_turns_the_foot_orange(b
 @pytest.fixture(scope="module")
 def retargeted_walk():
     """Two seconds of the synthetic walk and its native-scale reference (a few seconds to solve)."""
-    from clips import clip
-
     from retarget.clip import retarget_demonstration
-
     from retarget.config import load_config
+
+    from clips import clip
 
     demo = clip("walk", 40, 100)
     return retarget_demonstration(demo, load_config()), demo
@@ -131,7 +129,7 @@ def test_the_person_beside_the_robot_with_the_eval_metrics_and_the_readme_pictur
     reference, demo = retargeted_walk
     viewer = open_viewer({"ours": reference}, demo, port=_free_port())
     with _viewer_page(browser, viewer) as page:
-        page.get_by_text("ground J").wait_for(timeout=60_000)  # otr eval's table, computed in the background
+        page.get_by_text("ground J").wait_for(timeout=60_000)  # otr score's table, computed in the background
         frame_box = page.locator("input.mantine-NumberInput-input").first  # the number beside the slider
         frame_box.fill("60")
         frame_box.press("Enter")

@@ -8,12 +8,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from clips import clip
 
 from otr_gym import robot
 from otr_gym.robot_geometry import visual_meshes
 from retarget.clip import retarget_demonstration
 from retarget.config import RetargetConfig
+
+from clips import clip
 
 
 @pytest.fixture(scope="module")
@@ -26,8 +27,8 @@ def carry():
 
 
 def test_hands_touch_the_carried_box_in_95_percent_of_the_demonstrated_contact_frames(carry):
-    from retarget.solver.problem import resample_demonstration
     from retarget.checks.verify import check_reference
+    from retarget.solver.problem import resample_demonstration
 
     demo, ref = carry
     checks = check_reference(ref, resample_demonstration(demo, ref.fps))

@@ -12,7 +12,8 @@ import trimesh
 
 from otr_gym.reference import InvalidReferenceError, ObjectTrack, Reference
 from otr_gym.rotations import quat_apply, quat_from_rotvec, quat_mul
-from retarget.inputs.demonstration import Demonstration, DemoObject
+from retarget.cli.score import configure_parser, main
+from retarget.evaluation import evaluate_sequence
 from retarget.evaluation.alignment import AlignmentError, check_durations, demo_at_times
 from retarget.evaluation.channels import reference_tracks
 from retarget.evaluation.config import EvalConfig
@@ -22,11 +23,10 @@ from retarget.evaluation.orientation import orientation_error_deg
 from retarget.evaluation.proximity import BoundedMesh, ground_proximity, mesh_proximity
 from retarget.evaluation.scale import fit_track_scale, recover_scale, scale_demonstration
 from retarget.evaluation.self_collision import self_penetration
-from retarget.geometry.kinematics import tree_distance
 from retarget.evaluation.units import Piece, PosedUnit, group_units
+from retarget.geometry.kinematics import tree_distance
+from retarget.inputs.demonstration import Demonstration, DemoObject
 from retarget.inputs.meshes import as_trimesh, signed_distance
-from retarget.cli.score import configure_parser, main
-from retarget.evaluation import evaluate_sequence
 
 EPS = 0.02
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -216,8 +216,8 @@ def test_links_sharing_a_human_part_form_one_unit():
 
 def test_default_units_partition_the_g1_links_and_human_parts():
     from otr_gym.robot_geometry import visual_meshes
-    from retarget.inputs.human import G1_LINK_PARTS
     from retarget.evaluation import default_units
+    from retarget.inputs.human import G1_LINK_PARTS
 
     units = default_units()
     links = [lk for u in units for lk in u.links]

@@ -13,7 +13,14 @@ from pathlib import Path
 import pytest
 
 from retarget.geometry import kernel_warmup
-from retarget.geometry.kernel_warmup import KERNEL_LIST, compile_kernels, parse_kernel_lines, read_kernel_list, start_warmup
+from retarget.geometry.kernel_warmup import (
+    KERNEL_LIST,
+    compile_kernels,
+    parse_kernel_lines,
+    read_kernel_list,
+    start_warmup,
+)
+
 from conftest import REPO_ROOT
 
 ROOT = REPO_ROOT
@@ -46,7 +53,8 @@ _WARM_UP = textwrap.dedent("""
     warmup = kernel_warmup.start_warmup()
     failures = kernel_warmup.finish_warmup()
     print(json.dumps({"workers": len(warmup.processes), "failures": failures,
-                      "marker": kernel_warmup.warmup_marker().is_file(), "again": kernel_warmup.start_warmup() is None}))
+                      "marker": kernel_warmup.warmup_marker().is_file(),
+                      "again": kernel_warmup.start_warmup() is None}))
 """)
 
 
@@ -67,7 +75,7 @@ def test_a_warmup_fills_numbas_cache_so_that_the_solver_compiles_nothing_and_the
     assert warm["marker"] and warm["again"]  # a filled cache is not warmed twice
     run = _run(_RETARGET_AND_REPORT, tmp_path / "numba")
     listed = [line for line in KERNEL_LIST.read_text().splitlines() if line and not line.startswith("#")]
-    assert run["signatures"] == listed, ("retarget/geometry/kernels.txt is stale: python -m retarget.cli.kernel_record")
+    assert run["signatures"] == listed, ("retarget/geometry/kernels.txt is stale: otr kernels")
     assert run["compiled"] == [], f"compiled although warmed up: {run['compiled']}"
 
 
@@ -83,7 +91,8 @@ def test_the_list_parses_into_one_signature_per_kernel_of_this_package():
 
 def test_a_malformed_line_is_refused_with_its_file_and_line_number():
     with pytest.raises(ValueError, match=r"kernels\.txt:3: not a kernel signature"):
-        parse_kernel_lines(["# comment", "", "retarget.solver.targets._inside_box (Array(float64, 2, 'C'),"], "kernels.txt")
+        parse_kernel_lines(["# comment", "", "retarget.solver.targets._inside_box (Array(float64, 2, 'C'),"],
+                           "kernels.txt")
     with pytest.raises(ValueError, match=r"list\.txt:1: .*NameError"):
         parse_kernel_lines(["retarget.solver.targets._inside_box (os.system('true'),)"], "list.txt")
 
@@ -91,7 +100,8 @@ def test_a_malformed_line_is_refused_with_its_file_and_line_number():
 def test_a_stale_signature_is_reported_by_kernel_name_and_the_others_still_compile():
     stale, good = parse_kernel_lines([
         "retarget.solver.targets._inside_box (float64, float64, float64, float64)",  # arrays changed to scalars
-        [line for line in KERNEL_LIST.read_text().splitlines() if line.startswith("retarget.solver.targets._inside_box ")][0],
+        [line for line in KERNEL_LIST.read_text().splitlines()
+         if line.startswith("retarget.solver.targets._inside_box ")][0],
     ], "test")
     failures = compile_kernels([stale, good])
     assert len(failures) == 1 and failures[0].startswith("retarget.solver.targets._inside_box: TypingError")

@@ -3,22 +3,17 @@ units and up-axis detection, the body fit, and a clear error for every kind of b
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
 from otr_gym.rotations import quat_error_angle, quat_to_matrix
-from retarget.inputs.bvh import (
-    FAMILIES,
-    BvhError,
-    BvhOptions,
-    detect_units,
-    match_family,
-    parse_bvh,
-    read_bvh,
-    world_transforms,
-)
-from retarget.inputs.readers import load_demonstration
+from retarget.inputs.bvh import BvhError, BvhOptions, detect_units, read_bvh
+from retarget.inputs.bvh_file import parse_bvh, world_transforms
 from retarget.inputs.human import PART_NAMES, PART_PARENTS, SMPLX_REST_QUAT_W
+from retarget.inputs.readers import load_demonstration
+from retarget.inputs.skeletons import FAMILIES, match_family
 
 # A stick figure in centimetres, y up, facing +z, T-pose: SMPL-X part -> offset from its parent.
 STICK_CM = {
@@ -148,6 +143,21 @@ def test_position_channels_replace_the_offset(tmp_path):
             "  End Site\n  {\n   OFFSET 0 1 0\n  }\n }\n}\nMOTION\nFrames: 1\nFrame Time: 0.01\n1 2 3 5 5 5\n")
     pos, _ = world_transforms(parse_bvh(write(tmp_path, text)))
     np.testing.assert_allclose(pos[0], [[1.0, 2.0, 3.0], [6.0, 7.0, 8.0]])
+
+
+def test_a_brace_on_the_declaration_line_reads_as_on_its_own_line(tmp_path):
+    """``ROOT Hips {``, ``JOINT X {``, ``JOINT X{`` and ``End Site {`` as some exporters write them."""
+    frames = [{}, {"root": (10.0, 90.0, -5.0), "Pelvis": (0.0, 0.0, 90.0), "L_Knee": (0.0, 90.0, 0.0)}]
+    own_line = stick_bvh(frames=frames)
+    same_line = re.sub(r"^(\s*(?:ROOT|JOINT|End)\b[^\n]*)\n\s*\{$", r"\1 {", own_line, flags=re.M)
+    same_line = same_line.replace("JOINT leftleg {", "JOINT leftleg{")
+    assert "ROOT hips {" in same_line and "End Site {" in same_line and "JOINT leftleg{" in same_line
+    a = parse_bvh(write(tmp_path, own_line, "own_line.bvh"))
+    b = parse_bvh(write(tmp_path, same_line, "same_line.bvh"))
+    assert b.joint_names == a.joint_names and b.parents == a.parents and b.channels == a.channels
+    assert b.end_sites.keys() == a.end_sites.keys()
+    np.testing.assert_array_equal(b.offsets, a.offsets)
+    np.testing.assert_array_equal(b.motion, a.motion)
 
 
 # ------------------------------------------------------------------ units and up axis

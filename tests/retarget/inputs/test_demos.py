@@ -14,9 +14,9 @@ import trimesh
 
 from otr_gym.rotations import quat_apply_inverse, quat_from_rotvec, quat_mul, quat_to_matrix, quat_to_rotvec
 from retarget.inputs.demonstration import Demonstration, DemonstrationFileNotFoundError, InvalidDemonstrationError
-from retarget.inputs.readers import INTERMIMIC_JOINTS, INTERMIMIC_OF_PART, load_demonstration
 from retarget.inputs.human import PART_NAMES, SMPLX_REST_QUAT_W, STYLE_LINKS, HumanModel, alignment_offsets, part_index
 from retarget.inputs.meshes import load_mesh, signed_distance
+from retarget.inputs.readers import INTERMIMIC_JOINTS, INTERMIMIC_OF_PART, load_demonstration
 from retarget.inputs.synthetic import generate
 
 OMOMO_CLIP = "omomo/sub3_largebox_003.pt"
@@ -165,7 +165,7 @@ def test_unknown_formats_and_corrupt_files_are_rejected(tmp_path):
     with pytest.raises(InvalidDemonstrationError, match=r"other.npz.*unknown .npz layout"):
         load_demonstration(tmp_path / "other.npz")
     (tmp_path / "corrupt.npz").write_bytes(b"PK\x03\x04 definitely not a zip")
-    with pytest.raises(InvalidDemonstrationError, match=r"corrupt.npz.*not a readable"):
+    with pytest.raises(InvalidDemonstrationError, match=r"corrupt.npz: not a NumPy .npz archive \(truncated"):
         load_demonstration(tmp_path / "corrupt.npz")
 
 
@@ -247,6 +247,17 @@ def test_omomo_corrupt_file_and_missing_mesh_are_reported(tmp_path):
         load_demonstration(clip)
     with pytest.raises(DemonstrationFileNotFoundError, match="no_such.obj"):
         load_demonstration(clip, object_mesh=tmp_path / "no_such.obj")
+
+
+def test_omomo_missing_mesh_beside_a_relative_clip_lists_its_one_candidate_once_and_says_how_to_pass_it(
+        tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # "sub1_largebox_001.pt": the clip's folder and its parent are both "."
+    torch.save(_minimal_omomo_tensor(), tmp_path / "sub1_largebox_001.pt")
+    with pytest.raises(DemonstrationFileNotFoundError) as error:
+        load_demonstration("sub1_largebox_001.pt")
+    message = str(error.value)
+    assert message.count("objects/largebox.obj") == 1, message
+    assert "object_mesh=" in message and "--object" in message
 
 
 def test_omomo_unusable_object_mesh_is_reported_with_both_files(tmp_path):

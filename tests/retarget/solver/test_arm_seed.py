@@ -32,7 +32,8 @@ def test_best_arm_recovers_any_reachable_arm_pose_within_the_joint_limits():
     for chain in arm_chains():
         for _ in range(30):
             arm = rng.uniform(chain.lower, chain.upper)
-            waist, base = rng.uniform(-0.3, 0.3, 3), Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix()
+            waist, base = (rng.uniform(-0.3, 0.3, 3),
+                           Rotation.random(random_state=int(rng.integers(1 << 30))).as_matrix())
             found, cost = best_arm(chain, base, waist, _tracked_targets(chain, base, waist, arm))
             assert cost < 1e-8
             assert np.all(found >= chain.lower - 1e-12) and np.all(found <= chain.upper + 1e-12)

@@ -14,14 +14,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from clips import clip
-from conftest import REPO_ROOT
 
 import retarget
 from otr_gym.io import npz_bytes
 from retarget.clip import retarget_timed
 from retarget.config import load_config
 from retarget.solver.qp_workspace import QPWorkspace
+
+from clips import clip
+from conftest import REPO_ROOT
 
 REPO = REPO_ROOT
 TARGET, OTHER = ("walk", 40, 50), ("crawl", 50, 60)  # 10 frames at 30 fps: 16 frames at 50 fps

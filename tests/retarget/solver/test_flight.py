@@ -9,14 +9,15 @@ from dataclasses import replace
 import numpy as np
 import pinocchio as pin
 import pytest
-from clips import clip
 
 from otr_gym import robot
-from retarget.geometry.centre_of_mass import com_path, com_residual
 from retarget.checks.feasibility import check_feasibility
-from retarget.solver.flight import GRAVITY_M_S2, FlightConfig, ballistic_com, supported_frames
 from retarget.clip import retarget_demonstration
 from retarget.config import RetargetConfig
+from retarget.geometry.centre_of_mass import com_path, com_residual
+from retarget.solver.flight import GRAVITY_M_S2, FlightConfig, ballistic_com, supported_frames
+
+from clips import clip
 
 FPS = 50.0
 

@@ -9,11 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from clips import clip
-from conftest import load_benchmark
 
 from otr_gym.reference import Reference
 from retarget.solver.problem import resample_demonstration
+
+from clips import clip
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +39,8 @@ def test_two_seeds_are_retargeted_ranked_and_resumed(seeds_module, tmp_path, cap
     assert sorted(r["seed"] for r in rows) == [0, 1] and all(r["runs"] == 2 for r in rows)
     assert all(isinstance(r["overlaps"], list) for r in rows)
     # best first: most runs carried, then the smaller mean error
-    assert [(-r["carried"], r["error_cm_mean"]) for r in rows] == sorted((-r["carried"], r["error_cm_mean"]) for r in rows)
+    assert ([(-r["carried"], r["error_cm_mean"]) for r in rows]
+            == sorted((-r["carried"], r["error_cm_mean"]) for r in rows))
     files = [Path(r["reference"]) for r in rows]
     a, b = (Reference.load(f) for f in sorted(files))
     assert not np.array_equal(a.joint_pos, b.joint_pos)  # the probe seed changes the solution

@@ -5,19 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pinocchio as pin
 import pytest
-from clips import clip
 
 from otr_gym import robot
-from retarget.geometry.kinematics import NUM_LINKS, RobotKinematics, segment_closest_points
+from retarget.checks.verify import check_reference
 from retarget.clip import retarget_demonstration
 from retarget.config import RetargetConfig
-from retarget.solver.problem import SolverConfig, build_problem, resample_demonstration
-from retarget.solver.residuals import FIXED, Rows
+from retarget.geometry.kinematics import NUM_LINKS, RobotKinematics, segment_closest_points
 from retarget.solver.iterate import new_state
+from retarget.solver.problem import SolverConfig, build_problem, resample_demonstration
 from retarget.solver.qp import assemble_cost, body_jacobians, model_at, qp_step
+from retarget.solver.residuals import FIXED, Rows
 from retarget.solver.rows import linearise
 from retarget.solver.targets import frame_targets
-from retarget.checks.verify import check_reference
+
+from clips import clip
 
 EPS_COL = 3e-4
 
@@ -312,13 +313,15 @@ def test_a_units_demonstrated_gap_is_its_whole_surface_and_decides_whether_it_is
     far_sources[c][problem.contact_units == u] = 0.05
     unit_d = [g.copy() for g in targets.unit_d]
     unit_d[c][u] = 0.004
-    sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)), [pairs])
+    sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)),
+                               [pairs])
     mine = problem.contact_units[problem.robot.body[sel.probe]] == u
     assert mine.sum() == 1 and sel.touching[mine].all() and sel.target[mine] == pytest.approx(0.004)
     # and one whose surface stays 5 cm off is held out to the clearance, whatever its sources say
     unit_d[c][u] = 0.05
     far_sources[c][problem.contact_units == u] = 0.0
-    sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)), [pairs])
+    sel = _select_contact_rows(problem, replace(targets, robot_link_d=tuple(far_sources), unit_d=tuple(unit_d)),
+                               [pairs])
     mine = problem.contact_units[problem.robot.body[sel.probe]] == u
     assert not sel.touching[mine].any() and sel.target[mine] == pytest.approx(problem.interaction.clearance_m)
 

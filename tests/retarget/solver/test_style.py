@@ -7,8 +7,8 @@ import pytest
 
 from otr_gym import robot
 from otr_gym.rotations import quat_to_matrix, so3_exp
-from retarget.inputs.human import HumanModel, g1_tpose_body_poses, g1_tpose_qpos, human_tpose
 from retarget.geometry.kinematics import NUM_LINKS, RobotKinematics
+from retarget.inputs.human import HumanModel, g1_tpose_body_poses, g1_tpose_qpos, human_tpose
 from retarget.solver.style import (
     StyleConfig,
     object_style_rows,

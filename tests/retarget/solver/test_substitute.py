@@ -10,15 +10,14 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from clips import clip
 
 from otr_gym.rotations import quat_from_rotvec
-from retarget.geometry.channels import GeometryConfig, sample_surface
-from retarget.inputs.meshes import InvalidMeshError, as_trimesh, signed_distance
-from retarget.evaluation import evaluate_sequence
+from retarget.checks.verify import check_reference, object_in_robot_depth
 from retarget.clip import retarget_demonstration
 from retarget.config import RetargetConfig
-from retarget.solver.problem import build_problem, resample_demonstration
+from retarget.evaluation import evaluate_sequence
+from retarget.geometry.channels import GeometryConfig, sample_surface
+from retarget.inputs.meshes import InvalidMeshError, as_trimesh, signed_distance
 from retarget.inputs.shapes import (
     LIBRARY,
     ShapeSpec,
@@ -29,6 +28,7 @@ from retarget.inputs.shapes import (
     parse_shapes,
     substitute_mesh,
 )
+from retarget.solver.problem import build_problem, resample_demonstration
 from retarget.solver.substitute import (
     SubstitutionConfig,
     free_objects,
@@ -36,7 +36,8 @@ from retarget.solver.substitute import (
     surface_maps,
 )
 from retarget.solver.targets import frame_targets
-from retarget.checks.verify import check_reference, object_in_robot_depth
+
+from clips import clip
 
 EPS_COL = 3e-4
 #: The paper's dimensions (m) along the canonical x, y, z (z up).
@@ -211,7 +212,7 @@ def test_the_box_rests_on_the_table_and_the_robot_never_touches_it(place, free_t
     assert result.details["object_channels"]["box"]["recall"] >= 0.9
     from retarget.evaluation.report import format_object_notes
 
-    notes = format_object_notes([result.as_dict()])  # what `otr eval` prints under its table
+    notes = format_object_notes([result.as_dict()])  # what `otr score` prints under its table
     assert "robot–table" in notes and f"box–table R {100 * pair['recall']:.0f} %" in notes
     moved = np.linalg.norm(ref.objects[1].pos_w - place.objects[1].pos_w, axis=1)
     # free: pushed off by the cold start (frames 0-2; measured 7.1 cm, 8.2 cm since the contact
@@ -268,7 +269,8 @@ def test_variants_batch_reports_a_failure_goes_on_then_resumes(grasp_file, tmp_p
         assert 0.0 <= r["metrics"]["object_recall"] <= 1.0 and r["timing"]["solve_s"] > 0
         assert r["metrics"]["grip_recall"] >= 0.8  # the hands hold either box
         # the robot's visual-mesh vertices never enter the box (the solver's ε_col, checked exactly)
-        assert r["checks"]["object_penetration_mesh_m"] <= EPS_COL and r["checks"]["ground_penetration_mesh_m"] <= EPS_COL
+        assert (r["checks"]["object_penetration_mesh_m"] <= EPS_COL
+                and r["checks"]["ground_penetration_mesh_m"] <= EPS_COL)
         assert r["checks"]["object_in_robot_m"] >= 0.0
     table = (out / "variants.md").read_text()
     assert "| box ×1.0 (native) |" in table and "| box ×0.8 |" in table and "drift cm" in table

@@ -1,0 +1,121 @@
+"""``otr score`` (``retarget.cli.score``): what it refuses and what it writes when a reference and
+its demonstration do not belong together."""
+
+from __future__ import annotations
+
+from argparse import ArgumentParser
+
+import numpy as np
+import pytest
+
+from otr_gym import robot
+from otr_gym.reference import Reference
+from retarget.cli.score import configure_parser, main, source_mismatch
+from retarget.inputs.demonstration import Demonstration
+
+FRAMES_50HZ = 16  # 0.3 s, the demonstration's duration
+
+
+def _parse(argv):
+    p = ArgumentParser()
+    configure_parser(p)
+    return p.parse_args(argv)
+
+
+@pytest.fixture(scope="module")
+def tpose_demo() -> Demonstration:
+    """The human standing still in the T-pose for 0.3 s at 30 fps."""
+    from retarget.inputs.human import PART_NAMES, PART_PARENTS, HumanModel, human_tpose
+
+    model = HumanModel()
+    pos, quat = human_tpose(model)
+    T = 10
+    return Demonstration(name="tpose", fps=30.0, part_names=PART_NAMES, part_parents=PART_PARENTS,
+                         part_pos_w=np.tile(pos, (T, 1, 1)), part_quat_w=np.tile(quat, (T, 1, 1)),
+                         surface=model.surface, shape=model.shape, stature_m=model.stature_m,
+                         source={"format": "synthetic", "path": "tpose-demo"})
+
+
+def g1_tpose(frames: int = FRAMES_50HZ, metadata: dict | None = None) -> Reference:
+    """The G1 standing still in its T-pose at 50 fps, with the given metadata."""
+    from retarget.inputs.human import g1_tpose_qpos
+
+    return Reference.from_qpos(np.tile(g1_tpose_qpos(), (frames, 1)), fps=50.0, metadata=metadata or {})
+
+
+def made_from(name: str, **source) -> dict:
+    """Metadata of a reference of ours made from the demonstration ``name`` (``retarget.clip``)."""
+    return {"mode": "native", "scale": 1.0, "source": {"name": name, "format": "synthetic", **source}}
+
+
+# ------------------------------------------------------------------ durations and the JSON
+
+
+def test_another_duration_fails_naming_both_files_and_durations_and_writes_no_json(tmp_path, tpose_demo, capsys):
+    demo = tpose_demo.save(tmp_path / "tpose.npz")
+    long = g1_tpose(frames=100).save(tmp_path / "long.npz")
+    out = tmp_path / "score.json"
+    assert main(_parse([str(long), "--demo", str(demo), "--json", str(out), "--no-progress"])) == 1
+    err = capsys.readouterr().err
+    assert "long.npz" in err and "tpose.npz" in err
+    assert "1.980 s" in err and "0.300 s" in err
+    assert not out.exists()
+    assert f"{out} not written" in err
+
+
+def test_a_failure_beside_a_score_is_kept_in_the_json(tmp_path, tpose_demo):
+    import json
+
+    demo = tpose_demo.save(tmp_path / "tpose.npz")
+    good = g1_tpose().save(tmp_path / "good.npz")
+    long = g1_tpose(frames=100).save(tmp_path / "long.npz")
+    out = tmp_path / "score.json"
+    assert main(_parse([str(good), str(long), "--demo", str(demo), "--scale", "1", "--json", str(out),
+                        "--no-progress"])) == 1
+    payload = json.loads(out.read_text())
+    assert [s["reference"] for s in payload["sequences"]] == [str(good)]
+    assert [f["reference"] for f in payload["failures"]] == [str(long)]
+
+
+# ------------------------------------------------------------------ the demonstration a reference was made from
+
+
+def test_a_reference_of_another_demonstration_is_refused_naming_both(tmp_path, tpose_demo, capsys):
+    demo = tpose_demo.save(tmp_path / "tpose.npz")
+    ref = g1_tpose(metadata=made_from("someone_else")).save(tmp_path / "someone_else_g1.npz")
+    out = tmp_path / "score.json"
+    assert main(_parse([str(ref), "--demo", str(demo), "--scale", "1", "--json", str(out), "--no-progress"])) == 2
+    err = capsys.readouterr().err
+    assert f"{ref} was made from another demonstration than {demo}" in err
+    assert "name 'someone_else' vs 'tpose'" in err and "--allow-other-demo" in err
+    assert not out.exists()
+
+
+def test_the_override_scores_a_reference_of_another_demonstration(tmp_path, tpose_demo):
+    demo = tpose_demo.save(tmp_path / "tpose.npz")
+    ref = g1_tpose(metadata=made_from("someone_else")).save(tmp_path / "someone_else_g1.npz")
+    assert main(_parse([str(ref), "--demo", str(demo), "--scale", "1", "--allow-other-demo", "--no-progress"])) == 0
+
+
+def test_a_reference_of_this_demonstration_is_scored(tmp_path, tpose_demo):
+    demo = tpose_demo.save(tmp_path / "tpose.npz")
+    ref = g1_tpose(metadata=made_from("tpose")).save(tmp_path / "tpose_g1.npz")
+    assert main(_parse([str(ref), "--demo", str(demo), "--scale", "1", "--no-progress"])) == 0
+
+
+def test_a_scaled_reference_of_another_stature_is_a_mismatch(tpose_demo):
+    taller = tpose_demo.stature_m + 0.04
+    ref = g1_tpose(metadata={**made_from("tpose"), "mode": "scaled", "scale": robot.HEIGHT_M / taller})
+    assert source_mismatch(ref, tpose_demo) == f"stature {taller:.3f} m vs {tpose_demo.stature_m:.3f} m"
+    same = g1_tpose(metadata={**made_from("tpose"), "mode": "scaled", "scale": robot.HEIGHT_M / tpose_demo.stature_m})
+    assert source_mismatch(same, tpose_demo) is None
+
+
+def test_another_format_is_a_mismatch_and_another_path_is_not(tpose_demo):
+    assert source_mismatch(g1_tpose(metadata=made_from("tpose", format="bvh")), tpose_demo) == \
+        "format 'bvh' vs 'synthetic'"
+    assert source_mismatch(g1_tpose(metadata=made_from("tpose", path="/elsewhere/tpose.npz")), tpose_demo) is None
+
+
+def test_a_reference_without_a_recorded_source_is_not_checked(tpose_demo):
+    assert source_mismatch(g1_tpose(), tpose_demo) is None
