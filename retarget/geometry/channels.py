@@ -21,15 +21,13 @@ eq. m-triple) with the derivatives the SQP needs:
 * The ground is analytic: d = z, w = (x, y, 0).
 
 Grids and geodesic tables are immutable and cached on disk keyed by the mesh content and
-the configuration; a cache file that fails validation is rebuilt, never trusted.
+the configuration; a cache file that fails validation is rebuilt, never trusted. The grids are
+``retarget.geometry.voxel_grid``, the geodesic tables ``retarget.geometry.geodesics``, the disk
+cache ``retarget.geometry.cache``; this module holds the channels that combine them.
 """
 
 from __future__ import annotations
 
-import hashlib
-import os
-import warnings
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -37,17 +35,10 @@ from typing import Protocol
 import igl
 import numba
 import numpy as np
-import potpourri3d as pp3d
-from llvmlite import ir as llvm_ir
-from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
-from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
-from otr_gym.io import load_npz, save_npz
-from retarget.geometry.distance_grid import grid_signed_distance, node_positions
-from retarget.geometry.jit import helper, inlined
+from retarget.geometry.cache import cached_arrays, default_cache_dir, hash_key
+from retarget.geometry.geodesics import SurfaceGeodesics
+from retarget.geometry.voxel_grid import VoxelGrid, build_sdf_grid
 from retarget.inputs.meshes import InvalidMeshError, TriMesh, load_mesh, object_mesh
 
 #: Bumped whenever the content or layout of cached grids changes.
@@ -60,8 +51,6 @@ _ON_SURFACE_M = 1e-6
 #: ‖∂W/∂x‖²_F above which a cell's blended witness is distrusted: a closest-point map gives 2 on a
 #: face, less at convex edges and corners, more only in concave regions (where blends drift).
 _MEDIAL_JACOBIAN_SQ = 2.2
-#: Trilinear corner order: bit 2 = x, bit 1 = y, bit 0 = z (so z-pairs are adjacent).
-_CORNERS = np.array([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dtype=np.intp)
 
 
 @dataclass(frozen=True)
@@ -175,248 +164,13 @@ def _check_points(name: str, x: np.ndarray, what: str = "probes") -> np.ndarray:
 # --------------------------------------------------------------------------- voxel grid
 
 
-@dataclass(frozen=True)
-class VoxelGrid:
-    """Samples of (Φ, Wx, Wy, Wz) at the nodes of a regular grid, channel frame.
-
-    Node (i, j, k) sits at origin + resolution · (i, j, k); ``values`` is (nx·ny·nz, 4) in
-    C order so a node's row is i·ny·nz + j·nz + k.
-    """
-
-    origin: np.ndarray  # (3,) m
-    resolution: float  # m
-    shape: tuple[int, int, int]
-    values: np.ndarray  # (nx*ny*nz, 4)
-
-    def __post_init__(self) -> None:
-        _, ny, nz = self.shape
-        strides = np.array([ny * nz, nz, 1], dtype=np.intp)
-        object.__setattr__(self, "_strides", strides)
-        object.__setattr__(self, "_upper", np.array(self.shape, np.float64) - 1.0)
-        object.__setattr__(self, "_phi", np.ascontiguousarray(self.values[:, 0]))
-
-    @property
-    def node_positions(self) -> np.ndarray:
-        """(nx·ny·nz, 3) node positions in row order (m)."""
-        return node_positions(self.origin, self.resolution, self.shape)
-
-    def _cells(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Lower-corner node index (N, 3) of each point's cell, position in the cell (N, 3) in
-        [0, 1], inside-grid mask (N,). Outside points use the cell of their projection."""
-        u = (x - self.origin) * (1.0 / self.resolution)
-        inside = np.all((u >= 0.0) & (u <= self._upper), axis=1)
-        i0 = np.clip(np.floor(u), 0.0, self._upper - 1.0)
-        return i0.astype(np.intp), np.clip(u - i0, 0.0, 1.0), inside
-
-    def corners(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Positions (8, N, 3) and values (8, N, 4) of the corners of each point's cell."""
-        i0, _, _ = self._cells(x)
-        idx = i0[None] + _CORNERS[:, None]
-        return self.origin + self.resolution * idx, np.take(self.values, idx @ self._strides, axis=0)
-
-    def interpolate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Trilinear values (N, 4), their Jacobian (N, 4, 3) and an inside-grid mask (N,).
-
-        Points outside the grid are evaluated at their projection onto the grid box with a
-        zero Jacobian (the caller marks them out of band).
-        """
-        return _interpolate(x, self.values, self.origin, 1.0 / self.resolution, self._upper, self._strides)
-
-    def interpolate_distance(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Φ alone: :meth:`interpolate`'s first column (N,), its gradient (N, 3) and the
-        inside mask, for a quarter of the memory traffic (constraint points need no witness)."""
-        val, jac, inside = _interpolate(x, self._phi[:, None], self.origin, 1.0 / self.resolution, self._upper,
-                                        self._strides)
-        return val[:, 0], jac[:, 0], inside
+# --------------------------------------------------------------------------- geodesics
 
 
-def _interpolate(x: np.ndarray, values: np.ndarray, origin: np.ndarray, inv_resolution: float, upper: np.ndarray,
-                 strides: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Trilinear interpolation of one grid's node ``values`` (M, C) at points x (N, 3) (grid
-    frame): values (N, C), their Jacobian (N, C, 3) (zero outside the grid) and inside (N,)."""
-    x = np.ascontiguousarray(x, dtype=np.float64)
-    n, ch = len(x), values.shape[1]
-    val, jac, inside = np.empty((n, ch)), np.empty((n, ch, 3)), np.empty(n, dtype=np.bool_)
-    _trilinear_kernel(x, np.zeros(n, np.intp), values, origin[None], np.array([inv_resolution]), upper[None],
-                      strides[None], np.zeros(1, np.intp), val, jac, inside)
-    return val, jac, inside
+# --------------------------------------------------------------------------- disk cache
 
 
-#: Points ahead whose grid cells a kernel asks the cache for while it interpolates the current
-#: one: grid lookups are scattered over tens of MB, and waiting for each cell in turn took most
-#: of their time (the loads of several points ahead overlap instead).
-PREFETCH_AHEAD = 8
-
-
-@intrinsic
-def _prefetch(typingctx, ary, index):
-    """Ask the cache for the element ``ary[index]`` (``index`` a tuple, one int per axis) without
-    waiting for it (LLVM's prefetch: read, keep in all cache levels); changes no value."""
-    sig = types.void(ary, index)
-
-    def codegen(context, builder, signature, args):
-        aryty, idxty = signature.args
-        array = context.make_array(aryty)(context, builder, args[0])
-        idx = [context.cast(builder, v, t, types.intp)
-               for v, t in zip(cgutils.unpack_tuple(builder, args[1], len(idxty)), idxty)]
-        ptr = cgutils.get_item_pointer(context, builder, aryty, array, idx, wraparound=False)
-        i32 = llvm_ir.IntType(32)
-        fn = cgutils.get_or_insert_function(builder.module, llvm_ir.FunctionType(llvm_ir.VoidType(),
-                                                                                 [ptr.type, i32, i32, i32]),
-                                            "llvm.prefetch.p0")
-        builder.call(fn, [ptr, i32(0), i32(3), i32(1)])
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
-@inlined
-def _prefetch_cell(values, r, sx, sy):
-    """Prefetch the 8 corner rows of the cell whose lower node is row r of ``values`` (M, C):
-    four pairs of adjacent rows (z neighbours), each pair's first and last element."""
-    last = values.shape[1] - 1
-    for o in (0, sy, sx, sx + sy):
-        _prefetch(values, (r + o, 0))
-        _prefetch(values, (r + o + 1, last))
-
-
-@inlined
-def _prefetch_phi_cell(phi, r, sx, sy):
-    """``_prefetch_cell`` of a flat Φ table (M,)."""
-    for o in (0, sy, sx, sx + sy):
-        _prefetch(phi, (r + o,))
-        _prefetch(phi, (r + o + 1,))
-
-
-@numba.njit(cache=True)
-def _trilinear_kernel(x, grid, values, origin, inv_resolution, upper, strides, offset, val, jac, inside):
-    """Trilinear interpolant of node values (M, C) at points x (N, 3), point i in the frame of
-    grid g = grid[i] (origin[g], 1/resolution, upper[g] = shape − 1, node strides[g], first row
-    offset[g] in ``values``); writes val (N, C), jac (N, C, 3) (∂/∂x, zero outside the grid)
-    and inside (N,). Points outside use the cell of their projection onto the grid box.
-
-    Per channel, successive lerps along z, y, x; each level's difference is the partial along
-    that axis (corner rows: z pairs adjacent, then y, then x). The cell of the point
-    ``PREFETCH_AHEAD`` further on is prefetched meanwhile.
-    """
-    n = x.shape[0]
-    for i in range(n):
-        if i + PREFETCH_AHEAD < n:
-            r, _, _, _, _ = _cell_row(x, i + PREFETCH_AHEAD, grid, origin, inv_resolution, upper, strides, offset)
-            g = grid[i + PREFETCH_AHEAD]
-            _prefetch_cell(values, r, strides[g, 0], strides[g, 1])
-        g = grid[i]
-        r, fx, fy, fz, ok = _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset)
-        inside[i] = ok
-        scale = inv_resolution[g] * ok
-        sx, sy = strides[g, 0], strides[g, 1]
-        for k in range(values.shape[1]):
-            v, gx, gy, gz = _trilinear_phi(values[:, k], r, sx, sy, fx, fy, fz)
-            val[i, k] = v
-            jac[i, k, 0] = gx * scale
-            jac[i, k, 1] = gy * scale
-            jac[i, k, 2] = gz * scale
-
-
-@inlined
-def _cell_row(x, i, grid, origin, inv_resolution, upper, strides, offset):
-    """Point i's cell in its grid grid[i] (arguments as ``_trilinear_kernel``): see ``_cell_of``."""
-    return _cell_of(x[i, 0], x[i, 1], x[i, 2], grid[i], origin, inv_resolution, upper, strides, offset)
-
-
-@inlined
-def _cell_of(x0, x1, x2, g, origin, inv_resolution, upper, strides, offset):
-    """The cell of point x in grid g (tables as ``_trilinear_kernel``'s): the row of its lower
-    node, the position in the cell (fx, fy, fz) in [0, 1], and whether x lies within the grid
-    (outside, the cell of its projection)."""
-    ix, fx, ok_x = _cell_axis(x0, origin[g, 0], inv_resolution[g], upper[g, 0])
-    iy, fy, ok_y = _cell_axis(x1, origin[g, 1], inv_resolution[g], upper[g, 1])
-    iz, fz, ok_z = _cell_axis(x2, origin[g, 2], inv_resolution[g], upper[g, 2])
-    return offset[g] + ix * strides[g, 0] + iy * strides[g, 1] + iz * strides[g, 2], fx, fy, fz, ok_x and ok_y and ok_z
-
-
-@helper
-def _cell_axis(x, origin, inv_resolution, upper):
-    """Along one axis: the cell's lower node index, the position in the cell in [0, 1], and
-    whether x lies within the grid (outside, the cell of the projection)."""
-    u = (x - origin) * inv_resolution
-    c, f = _cell_inside(u, upper)
-    return c, f, u >= 0.0 and u <= upper
-
-
-@inlined
-def _cell_inside(u, upper):
-    """Along one axis, for a grid coordinate u: the cell's lower node index and the position in
-    the cell in [0, 1] (a u outside [0, upper] gets the cell of its projection)."""
-    c = min(max(np.floor(u), 0.0), upper - 1.0)
-    return int(c), min(max(u - c, 0.0), 1.0)
-
-
-@inlined
-def _trilinear_phi(phi, r, sx, sy, fx, fy, fz):
-    """One channel of :func:`_trilinear_kernel` at the cell whose lower node is row r (node
-    strides sx, sy, 1) and position (fx, fy, fz) in it: the value and its partials along x, y,
-    z per cell width (the same arithmetic; unused partials are optimised away when inlined)."""
-    c000, c001 = phi[r], phi[r + 1]
-    c010, c011 = phi[r + sy], phi[r + sy + 1]
-    c100, c101 = phi[r + sx], phi[r + sx + 1]
-    c110, c111 = phi[r + sx + sy], phi[r + sx + sy + 1]
-    dz00, dz01, dz10, dz11 = c001 - c000, c011 - c010, c101 - c100, c111 - c110
-    cz00, cz01 = c000 + fz * dz00, c010 + fz * dz01
-    cz10, cz11 = c100 + fz * dz10, c110 + fz * dz11
-    dy0, dy1 = cz01 - cz00, cz11 - cz10
-    cyz0, cyz1 = cz00 + fy * dy0, cz10 + fy * dy1
-    dyz0, dyz1 = dz00 + fy * (dz01 - dz00), dz10 + fy * (dz11 - dz10)
-    dx = cyz1 - cyz0
-    return cyz0 + fx * dx, dx, dy0 + fx * (dy1 - dy0), dyz0 + fx * (dyz1 - dyz0)
-
-
-class GridStack:
-    """The Φ columns of several voxel grids (each in its own frame) in one flat table, so that
-    points spread over many grids (guard points against every nearby robot link) take one
-    trilinear query. Grids may be missing (None): such entries must not be queried.
-    """
-
-    def __init__(self, grids: list[VoxelGrid | None]) -> None:
-        present = [g for g in grids if g is not None]
-        self.has_grid = np.array([g is not None for g in grids])
-        zero3 = np.zeros(3)
-        self.origin = np.array([zero3 if g is None else g.origin for g in grids])
-        self.inv_resolution = np.array([0.0 if g is None else 1.0 / g.resolution for g in grids])
-        self.upper = np.array([zero3 + 1.0 if g is None else g._upper for g in grids])
-        self.strides = np.array([np.zeros(3, np.intp) if g is None else g._strides for g in grids])
-        sizes = np.array([0 if g is None else len(g.values) for g in grids])
-        self.offset = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.intp)
-        self.phi = (np.concatenate([g._phi for g in present]) if present else np.zeros(0))[:, None]
-        #: (G, 3) centre of each grid's box (grid frame) and (G,) its half diagonal (inf when missing)
-        self.box_centre = self.origin + 0.5 * self.upper * np.array([0.0 if g is None else g.resolution
-                                                                      for g in grids])[:, None]
-        self.box_radius = np.array([np.inf if g is None else 0.5 * g.resolution * np.linalg.norm(g._upper)
-                                    for g in grids])
-
-    def distance(self, x: np.ndarray, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Φ (N,), its gradient (N, 3) and the inside mask (N,) of points x (N, 3), each in the
-        frame of its grid ``grid`` (N,); as :meth:`VoxelGrid.interpolate_distance` per grid."""
-        n = len(x)
-        val, jac, inside = np.empty((n, 1)), np.empty((n, 1, 3)), np.empty(n, dtype=np.bool_)
-        _trilinear_kernel(np.ascontiguousarray(x, dtype=np.float64), np.asarray(grid, np.intp), self.phi,
-                          self.origin, self.inv_resolution, self.upper, self.strides, self.offset, val, jac, inside)
-        return val[:, 0], jac[:, 0], inside
-
-
-def build_sdf_grid(mesh: TriMesh, resolution_m: float, band_m: float, far_m: float | None = None) -> VoxelGrid:
-    """Exact Φ and W at every node of the box bounds ± (band + 1.5 voxels) (mesh frame).
-
-    The margin of a voxel puts every point closer than ``band_m`` to the surface inside a grid
-    cell, so the band is fully covered; the extra half voxel keeps nodes off the faces of
-    primitives whose sizes are whole centimetres (a node on the surface has no normal).
-    With ``far_m``, nodes provably farther outside hold a lower bound of Φ instead
-    (``retarget.geometry.distance_grid``): for grids read only closer than ``far_m`` − √3·resolution.
-    """
-    pad = band_m + 1.5 * resolution_m
-    lo = mesh.bounds[0] - pad
-    shape = tuple(int(s) for s in np.ceil((mesh.bounds[1] + pad - lo) / resolution_m).astype(int) + 1)
-    return VoxelGrid(lo, float(resolution_m), shape, grid_signed_distance(mesh, lo, float(resolution_m), shape, far_m))
+# --------------------------------------------------------------------------- channels
 
 
 def _medial_cells(x: np.ndarray, d: np.ndarray, corner_pos: np.ndarray,
@@ -450,191 +204,6 @@ def _medial_cells(x: np.ndarray, d: np.ndarray, corner_pos: np.ndarray,
     cols = np.arange(len(rows))
     normal = np.where(v_s[best, cols][:, None], m_s[best, cols], np.nan)
     return straddle, x[rows] - height[best, cols][:, None] * normal, normal
-
-
-# --------------------------------------------------------------------------- geodesics
-
-
-class SurfaceGeodesics:
-    """Geodesic distance between arbitrary points of one surface (mesh frame, m).
-
-    Precomputed: heat-method distances (potpourri3d point-cloud solver) between all pairs of
-    ``points``, stored as ``ratio`` = geodesic / chord clipped to ≥ 1 (geodesics are never
-    shorter than chords; the heat method underestimates at a few sample spacings). Online:
-    ρ(w, ŵ) = |w − ŵ| · Σ_ij α_i(w) α_j(ŵ) ratio_ij with Gaussian weights α (bandwidth = mean
-    sample spacing) over k samples near each point. The k samples are those nearest to the
-    closest node of ``grid`` (a table made once), which spares a k-d tree search per call.
-    """
-
-    def __init__(self, points: np.ndarray, ratio: np.ndarray, spacing_m: float, grid: VoxelGrid,
-                 neighbour_table: np.ndarray) -> None:
-        self.points = points
-        self.ratio = ratio
-        self.spacing_m = float(spacing_m)
-        self.grid = grid
-        self.neighbour_table = neighbour_table
-
-    @staticmethod
-    def heat_ratio(points: np.ndarray) -> np.ndarray:
-        """All-pairs geodesic/chord ratio (K, K) float32 by the heat method on the point cloud."""
-        solver = pp3d.PointCloudHeatSolver(points)
-        dist = np.stack([solver.compute_distance(i) for i in range(len(points))])
-        dist = 0.5 * (dist + dist.T)  # the heat method is not exactly symmetric
-        chord = cdist(points, points)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.where(chord > 0, dist / chord, 1.0)
-        return np.maximum(ratio, 1.0).astype(np.float32)
-
-    @staticmethod
-    def make_neighbour_table(points: np.ndarray, grid: VoxelGrid, neighbours: int) -> np.ndarray:
-        """(nodes, k) int32: the k samples nearest to every grid node."""
-        k = int(min(neighbours, len(points)))
-        _, idx = cKDTree(points).query(grid.node_positions, k=k)
-        return idx.reshape(-1, k).astype(np.int32)
-
-    def weights(self, x: np.ndarray, derivative: bool = False) -> tuple[np.ndarray, ...]:
-        """Neighbour indices (N, k) and normalised weights (N, k) of points x (N, 3), and with
-        ``derivative`` ∂weights/∂x (N, k, 3)."""
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        table, grid = self.neighbour_table, self.grid
-        idx = np.empty((len(x), table.shape[1]), table.dtype)
-        a = np.empty(idx.shape)
-        da = np.empty(idx.shape + (3,)) if derivative else np.empty((0, 0, 3))
-        _neighbours(x, table, grid.origin, 1.0 / grid.resolution, grid._upper, grid._strides, idx)
-        _blend_weights(x, idx, self.points, 1.0 / self.spacing_m**2, a, da)
-        return (idx, a, da) if derivative else (idx, a)
-
-    def chord_ratio(self, w: np.ndarray, w_hat: np.ndarray,
-                    hat_weights: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """γ(w, ŵ) = ρ/|w − ŵ| (N,), the blended geodesic/chord ratio, and ∂γ/∂w (N, 3):
-        γ = Σ_ij α_i(w) β_j(ŵ) ratio_ij over the neighbour samples of w and ŵ.
-
-        ``hat_weights``: :meth:`weights` of ŵ when already known (they depend on ŵ alone)."""
-        i, a, da = self.weights(w, derivative=True)
-        j, b = self.weights(w_hat) if hat_weights is None else hat_weights
-        gamma, dgamma = np.empty(len(a)), np.empty((len(a), 3))
-        _blend_ratio(self.ratio, i, a, da, j, b, gamma, dgamma)
-        return gamma, dgamma
-
-    def distance(self, w: np.ndarray, w_hat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """ρ(w; ŵ) (N,) in m and ∂ρ/∂w (N, 3); w, ŵ on the surface (mesh frame)."""
-        gamma, dgamma = self.chord_ratio(w, w_hat)
-        chord = w - w_hat
-        e = np.sqrt(np.einsum("nj,nj->n", chord, chord))
-        unit = np.divide(chord, e[:, None], out=np.zeros_like(chord), where=e[:, None] > 0)
-        return e * gamma, gamma[:, None] * unit + e[:, None] * dgamma
-
-
-@numba.njit(cache=True)
-def _neighbours(x, table, origin, inv_resolution, upper, strides, out):
-    """out[n] ← the neighbour-table row of the grid node nearest to x[n] (grid frame; see
-    ``_nearest_row``); the rows of ``PREFETCH_AHEAD`` points on are prefetched (the table is
-    scattered over 8 MB)."""
-    for n in range(x.shape[0]):
-        if n + PREFETCH_AHEAD < x.shape[0]:
-            _prefetch(table, (_nearest_row(x, n + PREFETCH_AHEAD, origin, inv_resolution, upper, strides), 0))
-        row = _nearest_row(x, n, origin, inv_resolution, upper, strides)
-        for j in range(table.shape[1]):  # element-wise: a row assignment compiles numba's shape-error formatting
-            out[n, j] = table[row, j]
-
-
-@inlined
-def _nearest_row(x, n, origin, inv_resolution, upper, strides):
-    """The row of the grid node nearest to x[n] (its index per axis rounded half to even and
-    clipped to the grid, then the strides)."""
-    row = 0
-    for c in range(3):
-        row += int(min(max(np.rint((x[n, c] - origin[c]) * inv_resolution), 0.0), upper[c])) * strides[c]
-    return row
-
-
-@numba.njit(cache=True)
-def _blend_weights(x, idx, points, inv_h2, a, da):
-    """Gaussian weights a (N, k) of the samples ``points[idx]`` around each x (N, 3), bandwidth
-    h (inv_h2 = 1/h²), normalised to sum 1; when ``da`` has N rows, ∂a/∂x = a (s − s̄)/h²."""
-    k = idx.shape[1]
-    diff = np.empty((k, 3))
-    sq = np.empty(k)
-    for n in range(x.shape[0]):
-        low = np.inf
-        for i in range(k):
-            for c in range(3):
-                diff[i, c] = points[idx[n, i], c] - x[n, c]  # s_i − x
-            sq[i] = diff[i, 0] * diff[i, 0] + diff[i, 1] * diff[i, 1] + diff[i, 2] * diff[i, 2]
-            low = min(low, sq[i])
-        total = 0.0
-        for i in range(k):
-            a[n, i] = np.exp(-0.5 * inv_h2 * (sq[i] - low))
-            total += a[n, i]
-        for i in range(k):
-            a[n, i] /= total
-        if da.shape[0]:
-            for c in range(3):
-                mean = 0.0
-                for i in range(k):
-                    mean += a[n, i] * diff[i, c]
-                for i in range(k):
-                    da[n, i, c] = (diff[i, c] - mean) * (a[n, i] * inv_h2)
-
-
-@numba.njit(cache=True)
-def _blend_ratio(ratio, i_idx, a, da, j_idx, b, gamma, dgamma):
-    """γ = Σ_i a_i row_i and ∂γ/∂w = Σ_i ∂a_i row_i with row_i = Σ_j b_j ratio[i, j]. The
-    table (K × K, 16 MB at K = 2000) is read at scattered entries: those of the witness
-    ``PREFETCH_AHEAD`` further on are prefetched meanwhile."""
-    for n in range(a.shape[0]):
-        if n + PREFETCH_AHEAD < a.shape[0]:
-            for i in range(a.shape[1]):
-                for j in range(b.shape[1]):
-                    _prefetch(ratio, (i_idx[n + PREFETCH_AHEAD, i], j_idx[n + PREFETCH_AHEAD, j]))
-        g = 0.0
-        d0 = d1 = d2 = 0.0
-        for i in range(a.shape[1]):
-            row = 0.0
-            for j in range(b.shape[1]):
-                row += np.float64(ratio[i_idx[n, i], j_idx[n, j]]) * b[n, j]
-            g += a[n, i] * row
-            d0 += da[n, i, 0] * row
-            d1 += da[n, i, 1] * row
-            d2 += da[n, i, 2] * row
-        gamma[n] = g
-        dgamma[n, 0], dgamma[n, 1], dgamma[n, 2] = d0, d1, d2
-
-
-# --------------------------------------------------------------------------- disk cache
-
-
-def default_cache_dir() -> Path:
-    """$OTR_CACHE_DIR, else ~/.cache/otr-gym."""
-    return Path(os.environ.get("OTR_CACHE_DIR", Path.home() / ".cache" / "otr-gym"))
-
-
-def cached_arrays(path: Path, key: str, build: Callable[[], dict[str, np.ndarray]],
-                  check: Callable[[dict[str, np.ndarray]], None]) -> dict[str, np.ndarray]:
-    """Load ``path`` if it holds ``key`` and passes ``check``; otherwise build, save, return.
-
-    A file that cannot be read, holds another key, or fails ``check`` (which raises) is
-    rebuilt with a warning naming it.
-    """
-    if path.is_file():
-        try:
-            arrays = load_npz(path)
-            if str(arrays.pop("cache_key", "")) != key:
-                raise ValueError("cache key mismatch")
-            check(arrays)
-            return arrays
-        except Exception as exc:  # noqa: BLE001 - any unreadable or invalid file is rebuilt, never trusted
-            warnings.warn(f"{path}: invalid cache file ({type(exc).__name__}: {exc}); rebuilding", stacklevel=3)
-    arrays = build()
-    save_npz(path, {**arrays, "cache_key": np.array(key)}, compressed=False)
-    return arrays
-
-
-def _hash_key(*parts: object) -> str:
-    return hashlib.sha256("|".join(str(p) for p in parts).encode()).hexdigest()
-
-
-# --------------------------------------------------------------------------- channels
 
 
 class SDFChannel:
@@ -671,7 +240,7 @@ class SDFChannel:
         surface = sample_surface(mesh, density, seed)
         n_geo = int(np.clip(len(surface), cfg.geodesic_min_samples, cfg.geodesic_max_samples))
         geo_samples = surface if n_geo == len(surface) else _sample_count(mesh, n_geo, seed + 1)
-        key = _hash_key(_GRID_FORMAT, mesh.content_hash, cfg.grid_resolution_m, cfg.band_m, density, seed,
+        key = hash_key(_GRID_FORMAT, mesh.content_hash, cfg.grid_resolution_m, cfg.band_m, density, seed,
                         n_geo)
         path = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "sdf" / f"{key}.npz"
 
@@ -874,6 +443,5 @@ def load_channel(path: str | Path, cfg: GeometryConfig = GeometryConfig(), cache
     return SDFChannel.from_mesh(load_mesh(path), cfg, cache_dir, **kw)
 
 
-__all__ = ["Channel", "GeometryConfig", "GridStack", "GroundChannel", "InvalidMeshError", "ProximityQuery",
-           "SDFChannel", "SurfaceGeodesics", "SurfaceSamples", "VoxelGrid", "build_sdf_grid", "cached_arrays",
-           "default_cache_dir", "load_channel", "sample_surface"]
+__all__ = ["Channel", "GeometryConfig", "GroundChannel", "InvalidMeshError", "ProximityQuery", "SDFChannel",
+           "SurfaceSamples", "load_channel", "sample_surface"]

@@ -131,7 +131,7 @@ def warmup_marker() -> Path:
     else:
         folder = _ROOT / "retarget" / "__pycache__"
         if not os.access(folder if folder.is_dir() else folder.parent, os.W_OK):
-            from retarget.geometry.channels import default_cache_dir
+            from retarget.geometry.cache import default_cache_dir
 
             folder = default_cache_dir()
     return folder / f"otr-kernels-{digest.hexdigest()[:20]}.warm"

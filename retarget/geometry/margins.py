@@ -18,7 +18,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from retarget.geometry.channels import VoxelGrid, cached_arrays, default_cache_dir
+from retarget.geometry.cache import cached_arrays, default_cache_dir
+from retarget.geometry.voxel_grid import VoxelGrid
 from retarget.inputs.meshes import TriMesh, signed_distance
 
 #: Sample lattice per cell axis: 4³ points measure the largest excess within ~0.1 mm on the

@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from retarget.geometry.channels import PREFETCH_AHEAD, _cell_axis, _prefetch_phi_cell, _trilinear_phi
 from retarget.geometry.jit import kernel_pose
 from retarget.geometry.kinematics import NUM_LINKS, LinkFrames
+from retarget.geometry.voxel_grid import PREFETCH_AHEAD, _cell_axis, _prefetch_phi_cell, _trilinear_phi
 from retarget.solver.iterate import SolverState, channel_pose, frames_at
 from retarget.solver.probes import _posed_point
 from retarget.solver.problem import ChannelTrack, Problem

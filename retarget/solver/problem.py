@@ -27,9 +27,10 @@ from otr_gym import robot
 from otr_gym.robot_geometry import surface_margin_m, visual_meshes
 from otr_gym.rotations import quat_slerp, quat_to_matrix
 from retarget.evaluation.feet import least_moving_speed
-from retarget.geometry.channels import Channel, GeometryConfig, GridStack, GroundChannel, SDFChannel
+from retarget.geometry.channels import Channel, GeometryConfig, GroundChannel, SDFChannel
 from retarget.geometry.kinematics import NUM_LINKS, RobotKinematics, link_pairs_beyond
 from retarget.geometry.margins import ErrorMargin, cached_margin
+from retarget.geometry.voxel_grid import GridStack
 from retarget.inputs.demonstration import Demonstration, DemoObject, InvalidDemonstrationError, scaled_object_positions
 from retarget.inputs.human_surface import HumanSurface
 from retarget.inputs.meshes import as_trimesh, object_mesh
@@ -498,7 +499,8 @@ def robot_link_grids(reach_m: float, cache_dir: Path | None = None) -> GridStack
     cached on disk like the object grids, one file per link mesh (its content hash in the name:
     scoring on Unitree's original meshes, ``otr_gym.true_surface``, must not evict the shipped
     meshes' grids, and the other way round)."""
-    from retarget.geometry.channels import VoxelGrid, build_sdf_grid, cached_arrays, default_cache_dir
+    from retarget.geometry.cache import cached_arrays, default_cache_dir
+    from retarget.geometry.voxel_grid import VoxelGrid, build_sdf_grid
 
     meshes = visual_meshes()
     root = (default_cache_dir() if cache_dir is None else Path(cache_dir)) / "robot_links"

@@ -37,7 +37,8 @@ from retarget.solver.contact_annotation import frame_contacts
 from retarget.solver.iterate import FrameStats, SectionTimer, SolverState, frames_at, new_state, retract
 from retarget.solver.problem import Problem
 from retarget.solver.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
-from retarget.solver.rows import linearise, self_mesh_rows
+from retarget.solver.rows import linearise
+from retarget.solver.self_rows import self_mesh_rows
 from retarget.solver.stance import stance_targets
 from retarget.solver.targets import frame_targets
 

@@ -29,7 +29,7 @@ import numpy as np
 import ot
 from scipy.spatial import cKDTree
 
-from retarget.geometry.channels import cached_arrays, default_cache_dir
+from retarget.geometry.cache import cached_arrays, default_cache_dir
 
 if TYPE_CHECKING:
     from retarget.inputs.demonstration import Demonstration

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from retarget.geometry.channels import build_sdf_grid
 from retarget.geometry.distance_grid import grid_signed_distance, node_positions
 from retarget.geometry.margins import interpolation_margin
+from retarget.geometry.voxel_grid import build_sdf_grid
 from retarget.inputs.meshes import as_trimesh, signed_distance
 
 

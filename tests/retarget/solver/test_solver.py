@@ -201,8 +201,8 @@ def test_a_board_face_cut_into_a_hand_far_from_its_edges_gives_one_row_per_clust
 
     from otr_gym.robot_geometry import visual_meshes
     from retarget.inputs.meshes import TriMesh, as_trimesh, signed_distance
+    from retarget.solver.object_rows import object_guard_rows, object_surface_rows
     from retarget.solver.probes import hull_guard_points, object_surface_guards
-    from retarget.solver.rows import object_guard_rows, object_surface_rows
 
     problem = build_problem(resample_demonstration(clip("box_carry", 130, 133), 50.0))
     state = new_state(problem)
@@ -332,7 +332,7 @@ def test_the_extreme_rows_group_sums_repeat_numpys_pairwise_sum_bit_for_bit():
     np.add.reduce exactly, across the 128-term boundary and several levels."""
     import numba
 
-    from retarget.solver.rows import _pairwise_sum
+    from retarget.solver.seed_rows import _pairwise_sum
 
     @numba.njit
     def gathered_sum(x, rows, col, lo, n):  # the helper has no Python entry point of its own
