@@ -8,7 +8,9 @@ Retargets (native scale, objects free) OMOMO ``sub3_largebox_003``, ``sub2_large
 current code (or scores the references already in ``--references``, e.g. made by an older
 version), then scores each with the evaluation protocol (``retarget.evaluation``) and prints:
 ground and object P/R/J, dd, dw, skate, clear, penetration into the ground and into the
-objects, self-penetration p95, drift and ms/frame.
+objects, self-penetration p95, drift, the reference's dynamic feasibility (``otr verify``'s
+measures: the share of frames over any limit, the peak limb jump, the peak torque over the
+effort limit) and ms/frame.
 
 Penetration is the deepest G1 visual-mesh vertex below the floor / inside an object over the
 clip, plus the link's mesh error bound (``otr_gym.true_surface``): an upper bound for Unitree's
@@ -40,9 +42,11 @@ COLUMNS = (
     ("oP", "object_precision", 100, 0), ("oR", "object_recall", 100, 0), ("oJ", "object_jaccard", 100, 0),
     ("o dd", "object_dd_m", 1e3, 1), ("o dw", "object_dw_m", 1e3, 0),
     ("pen g", "ground_penetration_m", 1e3, 2), ("pen o", "object_penetration_m", 1e3, 2),
-    ("self95", "self_m", 1e3, 2), ("drift", "drift_m", 100, 1), ("ms/f", "ms_per_frame", 1, 1),
+    ("self95", "self_m", 1e3, 2), ("drift", "drift_m", 100, 1),
+    ("flag", "flagged_share", 100, 1), ("limb", "limb_jump_peak_m", 100, 1), ("τ/eff", "torque_peak_ratio", 1, 2),
+    ("ms/f", "ms_per_frame", 1, 1),
 )
-UNITS = ("%", "%", "%", "mm", "cm/s", "mm", "%", "%", "%", "mm", "mm", "mm", "mm", "mm", "cm", "")
+UNITS = ("%", "%", "%", "mm", "cm/s", "mm", "%", "%", "%", "mm", "mm", "mm", "mm", "mm", "cm", "%", "cm", "×", "")
 
 
 def penetration(result, margin_per_unit: np.ndarray) -> tuple[float, float]:
@@ -64,6 +68,7 @@ def unit_margins(units) -> np.ndarray:
 
 def score(ref_path: Path, demo_path: Path, true_surface: bool, ms_per_frame: float | None) -> dict[str, float]:
     from otr_gym.reference import Reference
+    from retarget.checks.feasibility import check_feasibility
     from retarget.evaluation.sequence import evaluate_sequence
     from retarget.evaluation.units import default_units
     from retarget.inputs.readers import load_demonstration
@@ -77,8 +82,11 @@ def score(ref_path: Path, demo_path: Path, true_surface: bool, ms_per_frame: flo
     if ms_per_frame is None:  # references made elsewhere: the solve time they recorded, if any
         solver = ref.metadata.get("solver", {}) if isinstance(ref.metadata, dict) else {}
         ms_per_frame = float(solver.get("ms_per_frame", float("nan")))
+    feasibility = check_feasibility(ref).brief()
     return {**res.metrics, "ground_penetration_m": ground, "object_penetration_m": objects,
-            "ms_per_frame": ms_per_frame}
+            "flagged_share": feasibility["flagged_share"], "limb_jump_peak_m": feasibility["limb_jump_peak_m"],
+            "torque_peak_ratio": feasibility["torque_peak_ratio"],
+            "feasibility_frames_over": feasibility["frames_over"], "ms_per_frame": ms_per_frame}
 
 
 def format_table(rows: dict[str, dict[str, float]]) -> str:

@@ -49,7 +49,7 @@ What they cannot supply is the *unsupported* wrench; the joint torques are
 of a floating base; plain RNEA would hold the pelvis instead and hide the stance-leg torques.
 
 The ground is the floor z = 0 (``retarget.checks.ground``), and with ``ground=Ground.from_mesh(FILE)``
-(``python -m retarget.checks.verify --terrain FILE``) also a terrain mesh on it: support points then
+(``otr verify --terrain FILE``) also a terrain mesh on it: support points then
 stand on the highest upward face beneath them, "within ``contact_height_m``" is measured along
 that face's normal and the friction cone is built about it. Without the terrain, a reference
 recorded on one (Holosoma's crawl up a slope onto a platform) shows up as flight wherever it
@@ -232,6 +232,31 @@ class FeasibilityReport:
             why["penetration"] = f"{self.penetration_link[f]} {100 * self.penetration_m[f]:.1f} cm into the ground"
         return why
 
+    def frames_over(self) -> dict[str, int]:
+        """measure -> how many frames reach its limit (flight: frames in the air)."""
+        return {key: int((ratio >= 1.0).sum()) for key, ratio in self.measures().items()}
+
+    def flagged_share(self) -> float:
+        """Fraction of the clip's frames at or over some limit (0 for a feasible reference)."""
+        return float((self.severity() >= 1.0).mean()) if self.num_frames else 0.0
+
+    def brief(self) -> dict:
+        """What a corpus table needs of this clip: the flagged share, frames over each limit, the
+        peaks of the limb and pelvis jumps (m) and of the torque over effort, and the verdict."""
+        return {"flagged_share": self.flagged_share(), "frames_over": self.frames_over(),
+                "limb_jump_peak_m": float(self.limb_jump_m.max(initial=0.0)),
+                "pelvis_jump_peak_m": float(self.root_jump_m.max(initial=0.0)),
+                "torque_peak_ratio": float(self.torque_ratio.max(initial=0.0)), "verdict": self.verdict()}
+
+    def verdict(self) -> str:
+        """One line: "feasible", or how many frames are over which limits (most frames first)."""
+        flagged = int((self.severity() >= 1.0).sum())
+        if flagged == 0:
+            return f"verdict: feasible (no frame of {self.num_frames} reaches a limit)"
+        over = sorted(((n, key) for key, n in self.frames_over().items() if n), reverse=True)
+        return (f"verdict: {flagged} of {self.num_frames} frames ({100 * flagged / self.num_frames:.1f} %) over a "
+                f"limit: {', '.join(f'{key} {n}' for n, key in over)}")
+
     def hardest(self, count: int = 10) -> list[HardFrame]:
         """The ``count`` worst frames at severity ≥ 1, at most one per ``peak_separation_s``."""
         sev = self.severity()
@@ -295,6 +320,9 @@ class FeasibilityReport:
                               "time_s": float(t[f]),
                               "frames_over": int((self.penetration_m >= self.cfg.penetration_m).sum())}
         out["flagged_frames"] = int((self.severity() >= 1.0).sum())
+        out["flagged_share"] = self.flagged_share()
+        out["frames_over"] = self.frames_over()
+        out["verdict"] = self.verdict()
         out["hardest"] = [{"frame": h.frame, "time_s": float(t[h.frame]), "severity": h.severity,
                            "run_s": [float(t[h.start]), float(t[h.stop])], "why": h.reasons} for h in self.hardest()]
         return out
@@ -648,7 +676,8 @@ def plot_feasibility(r: FeasibilityReport, out_png: str | Path) -> Path:
 
 def write_feasibility(reference, png: str | Path | None = None, json_path: str | Path | None = None,
                       cfg: FeasibilityCfg | None = None, ground: Ground | None = None) -> FeasibilityReport:
-    """``python -m retarget.checks.verify``'s section: print the report, write the timeline and the summary."""
+    """``otr verify``'s section: print the report, write the timeline and the summary; the verdict
+    (``FeasibilityReport.verdict``) is the last line printed."""
     from otr_gym.io import write_json
 
     report = check_feasibility(reference, cfg, ground)
@@ -657,4 +686,5 @@ def write_feasibility(reference, png: str | Path | None = None, json_path: str |
         print(f"wrote {plot_feasibility(report, png)}")
     if json_path:
         print(f"wrote {write_json(json_path, report.summary())}")
+    print(report.verdict())
     return report

@@ -66,6 +66,12 @@ class ClipResult:
     ms_per_frame: float | None = None
     seconds: float | None = None
     worker: str = ""
+    #: share of the reference's frames over a dynamic-feasibility limit (``retarget.checks.feasibility``:
+    #: torques, jumps, support, sliding, …), so a corpus run shows which clips need care
+    flagged_share: float | None = None
+    #: frames over each limit, the peaks and the one-line verdict (``FeasibilityReport.brief``)
+    feasibility: dict | None = None
+
 
 def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
@@ -77,6 +83,7 @@ def retarget_bytes(job: Job, task: Task, frame_bar: bool = False) -> tuple[ClipR
     start = time.perf_counter()
     try:
         from otr_gym.io import npz_bytes
+        from retarget.checks.feasibility import check_feasibility
         from retarget.inputs.readers import load_demonstration
 
         demo = load_demonstration(job.source, task.object_mesh, bvh=task.bvh)
@@ -100,10 +107,13 @@ def retarget_bytes(job: Job, task: Task, frame_bar: bool = False) -> tuple[ClipR
         reference.validate()
         data = npz_bytes(reference.to_arrays())
         solver = reference.metadata["solver"]
+        feasibility = check_feasibility(reference)  # ~0.5 s a clip: the solve takes 10-100x that
         message = (f"{job.output} ({timing.frames} frames, {timing.ms_per_frame:.1f} ms/frame, "
-                   f"min distance {1000 * solver['min_distance_m']:.2f} mm)")
+                   f"min distance {1000 * solver['min_distance_m']:.2f} mm, "
+                   f"{100 * feasibility.flagged_share():.1f} % of frames over a feasibility limit)")
         return ClipResult(str(job.source), str(job.output), "done", message, timing.frames, timing.ms_per_frame,
-                          time.perf_counter() - start, worker_name()), data
+                          time.perf_counter() - start, worker_name(), feasibility.flagged_share(),
+                          feasibility.brief()), data
     except Exception as exc:  # one clip's failure must not stop the batch
         detail = "" if isinstance(exc, (ValueError, FileNotFoundError)) else "\n" + traceback.format_exc()
         return ClipResult(str(job.source), str(job.output), "failed", f"{job.source}: {type(exc).__name__}: {exc}"
@@ -127,7 +137,9 @@ def summary(results: list[ClipResult], executor: str, seconds: float) -> dict:
             "done": len(done), "failed": sum(r.status == "failed" for r in results),
             "skipped": sum(r.status == "skipped" for r in results), "frames": frames,
             "clips_per_minute": 60.0 * len(done) / seconds if seconds > 0 else None,
+            "feasible": sum(r.flagged_share == 0.0 for r in done),
             "results": [dataclasses.asdict(r) for r in results]}
+
 
 def report(bar, result: ClipResult) -> None:
     if result.status == "failed":

@@ -6,7 +6,8 @@ References are files or folders of ``.npz`` (ours, Holosoma, BeyondMimic, mjlab 
 reference (paired in order), or a folder in which each reference finds the demonstration whose
 file name (without suffix) is the longest prefix of its own (``sub3_largebox_003.pt`` for
 ``sub3_largebox_003_mj_w_obj.npz``). The table follows the paper's Tables I–III; ``--json``
-keeps every per-sequence value and is rewritten atomically after each sequence, so
+keeps every per-sequence value (with the reference's dynamic feasibility: the share of its
+frames over a limit, ``retarget.checks.feasibility``) and is rewritten atomically after each sequence, so
 ``--resume`` continues a long batch where it stopped; it is written only once a reference was
 scored (failures are listed in it beside the scores, never alone: a file of failures would read
 as a result, and a previous file is left as it was).
@@ -133,6 +134,7 @@ def pair_demonstrations(references: list[Path], demos: list[Path]) -> list[Path]
 def main(args: argparse.Namespace) -> int:
     from otr_gym.io import write_json
     from otr_gym.reference import InvalidReferenceError, Reference, list_references
+    from retarget.checks.feasibility import check_feasibility
     from retarget.evaluation.alignment import AlignmentError
     from retarget.evaluation.plots import plot_contact_timeline, plot_metric_distributions
     from retarget.evaluation.report import format_object_notes, format_scale_notes, format_table, read_json
@@ -187,6 +189,8 @@ def main(args: argparse.Namespace) -> int:
             refused += isinstance(exc, OtherDemonstrationError)
             continue
         record = result.as_dict()
+        feasibility = check_feasibility(ref)  # the motion alone: what a policy on the G1 will find hard
+        record["feasibility"] = feasibility.brief()
         record["demonstration_file"] = str(demo_path)
         record["seconds"] = time.perf_counter() - start
         records.append(record)
@@ -205,6 +209,9 @@ def main(args: argparse.Namespace) -> int:
             print(notes)
         print("\n".join(f"{r['name']}: {r['frames']} frames in {r['seconds']:.1f} s" for r in records
                         if "seconds" in r))
+        print("dynamic feasibility (otr verify for where and why):")
+        print("\n".join(f"  {r['name']}: {r['feasibility']['verdict'].removeprefix('verdict: ')}" for r in records
+                        if "feasibility" in r))
     if args.plots and records:
         for r in records:
             plot_contact_timeline(r, args.plots / f"{r['name']}_contacts.png")

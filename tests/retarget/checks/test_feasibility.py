@@ -54,6 +54,7 @@ def test_standing_still_is_feasible_and_the_feet_carry_the_weight(standing):
     assert r.intervals == [] and r.hardest() == []
     assert r.penetration_m.max() < 1e-3  # the soles on the floor, not in it
     assert format_report(r).endswith("no frame reaches a limit")
+    assert r.flagged_share() == 0.0 and r.verdict() == "verdict: feasible (no frame of 50 reaches a limit)"
 
 
 def test_a_hover_is_a_flight_with_the_whole_weight_unsupported():
@@ -140,6 +141,13 @@ def test_a_foot_that_snaps_for_one_frame_is_a_limb_jump_not_a_pelvis_jump():
     assert r.hardest()[0].frame in (24, 25, 26)  # the foot also slides there (it stays near the floor)
     summary = r.summary()["limb_jump"]
     assert summary["limb"] == "left foot" and summary["frames_over"] == 3
+    # the verdict counts every limit reached, the most-reached first
+    over = r.frames_over()
+    assert over["limb jump"] == 3 and over["jump"] == 0
+    assert r.flagged_share() == pytest.approx((r.severity() >= 1).sum() / 50)
+    counts = r.verdict().split("over a limit: ")[1].split(", ")
+    assert "limb jump 3" in counts and [int(c.rsplit(" ", 1)[1]) for c in counts] == sorted(
+        (n for n in over.values() if n), reverse=True)
     assert "limb jumps (feet, hands)" in format_report(r)
 
 
@@ -249,6 +257,13 @@ def test_verify_prints_the_section_and_writes_picture_and_summary(tmp_path, caps
     assert "dynamic feasibility at 50 fps" in out and "hardest frames" in out
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = json.loads(js.read_text())
+    # the verdict ends the output; the teleport's two frames are over the pelvis-jump limit (its
+    # low-passed acceleration also leaves the base unsupported around them)
+    assert out.rstrip().splitlines()[-1] == summary["verdict"]
+    assert summary["verdict"].startswith(f"verdict: {summary['flagged_frames']} of 50 frames")
+    assert "jump 2" in summary["verdict"].split(": ", 2)[2].split(", ")
+    assert summary["flagged_frames"] > 0 and summary["flagged_share"] == pytest.approx(summary["flagged_frames"] / 50)
+    assert summary["frames_over"]["jump"] == 2
     assert summary["jump"]["peak_m"] == pytest.approx(0.05)
     assert summary["hardest"][0]["frame"] in (24, 25)
     assert summary["penetration"]["peak_m"] < 1e-3 and summary["penetration"]["frames_over"] == 0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import shutil
 from pathlib import Path
 
@@ -12,6 +13,8 @@ import numpy as np
 import pytest
 
 from otr_gym.reference import Reference
+from retarget.checks.feasibility import check_feasibility
+from retarget.cli.batch import SUMMARY_NAME
 from retarget.cli.retarget import configure_parser, main
 from retarget.clip import retarget_demonstration
 from retarget.config import CONFIG_DIR, ConfigError, RetargetConfig, load_config
@@ -77,6 +80,17 @@ def test_folder_is_retargeted_then_skipped_on_the_second_run(tiny, tmp_path, cap
     assert ref.fps == 50.0 and ref.metadata["mode"] == "robot-only" and ref.metadata["scale"] == 1.0
     assert ref.metadata["config"]["interaction"]["robot_weights"] == [256.0, 625.0, 2500.0]
     assert ref.contacts.channel_names == ("ground",) and ref.contacts.distance.shape[1] == 30
+    # the summary carries each clip's dynamic feasibility, as `otr verify` measures it on the file
+    summary = json.loads((out / SUMMARY_NAME).read_text())
+    clip = next(r for r in summary["results"] if r["output"].endswith("walk_a.npz"))
+    report = check_feasibility(ref)
+    assert clip["flagged_share"] == pytest.approx(report.flagged_share())
+    brief = report.brief()
+    assert clip["feasibility"]["verdict"] == brief["verdict"]
+    assert clip["feasibility"]["frames_over"] == brief["frames_over"]
+    assert clip["feasibility"]["torque_peak_ratio"] == pytest.approx(brief["torque_peak_ratio"])
+    assert clip["feasibility"]["limb_jump_peak_m"] == pytest.approx(report.summary()["limb_jump"]["peak_m"])
+    assert summary["feasible"] == sum(r["flagged_share"] == 0.0 for r in summary["results"])
     stamp = (out / "walk_a.npz").stat().st_mtime_ns
     capsys.readouterr()
     assert main(_args(str(tiny), "--out", str(out), "--mode", "robot-only")) == 0

@@ -119,3 +119,31 @@ def test_another_format_is_a_mismatch_and_another_path_is_not(tpose_demo):
 
 def test_a_reference_without_a_recorded_source_is_not_checked(tpose_demo):
     assert source_mismatch(g1_tpose(), tpose_demo) is None
+
+
+# ------------------------------------------------------------------ dynamic feasibility beside the scores
+
+
+def test_each_scored_reference_carries_its_flagged_frame_share(tmp_path, tpose_demo, capsys):
+    """A G1 standing still is feasible; the same reference gliding sideways at 1 m/s slides its
+    stance feet on every frame: the JSON and the printed verdicts say so per reference."""
+    import json
+
+    from retarget.checks.feasibility import check_feasibility
+
+    demo = tpose_demo.save(tmp_path / "tpose.npz")
+    still = g1_tpose().save(tmp_path / "still.npz")
+    qpos = g1_tpose().qpos()
+    qpos[:, 1] += 1.0 * np.arange(len(qpos)) / 50.0
+    glide = Reference.from_qpos(qpos, fps=50.0).save(tmp_path / "glide.npz")
+    out = tmp_path / "score.json"
+    assert main(_parse([str(still), str(glide), "--demo", str(demo), "--scale", "1", "--json", str(out),
+                        "--no-progress"])) == 0
+    records = {s["name"]: s["feasibility"] for s in json.loads(out.read_text())["sequences"]}
+    assert records["still"]["flagged_share"] == 0.0 and records["still"]["verdict"].startswith("verdict: feasible")
+    expected = check_feasibility(Reference.load(glide))
+    assert expected.flagged_share() > 0.5
+    assert records["glide"]["flagged_share"] == pytest.approx(expected.flagged_share())
+    assert records["glide"]["frames_over"]["sliding"] == expected.frames_over()["sliding"] > 0
+    printed = capsys.readouterr().out
+    assert f"glide: {expected.verdict().removeprefix('verdict: ')}" in printed and "still: feasible" in printed
