@@ -31,9 +31,6 @@ class SolverState:
     stance: StanceTargets | None = None  # planted-foot targets of t − 1 (their anchors)
     recent_frames: list[tuple[bytes, LinkFrames]] = field(default_factory=list)  # ``frames_at``'s last answers
     com_data: pin.Data | None = None  # scratch of the COM term (``retarget.solver.flight``), apart from ``data``
-    #: world origins (K, 3) of the links whose paths are bounded (``retarget.solver.rows.path_step_rows``)
-    #: at the last two solved frames, oldest first
-    path: list[np.ndarray] = field(default_factory=list)
 
 
 @dataclass

@@ -141,15 +141,6 @@ class SolverConfig:
     #: off its path in one frame, 56 frames over 1 cm); with 2 cm: 3.0 cm, 34 frames; with 8 mm:
     #: 1.4 cm, 10 frames, at the same ground contact quality (``retarget.checks.feasibility``).
     base_step_m: float = 0.008
-    #: Ours (docs/method.md "Constraints"): per frame and world axis, a foot's or hand's origin
-    #: (ankle roll and wrist yaw links) stays within this of its constant-velocity prediction
-    #: 2 p_{t−1} − p_{t−2} (m). Its distance off the line through its neighbours is half that
-    #: second difference, so at most √3/2 × this: 2.6 cm, inside ``otr verify``'s 3 cm limb-jump
-    #: limit (a foot that snapped to its swing pose moved 18 cm in one frame). None: off.
-    limb_step_m: float | None = 0.03
-    #: The same for the pelvis origin: √3/2 × 1 cm = 8.7 mm off its neighbours' line, inside
-    #: ``otr verify``'s 1 cm (a ballistic flight's is g·dt² = 3.9 mm at 50 fps). None: off.
-    pelvis_step_m: float | None = 0.01
     #: Our choice: an object closer than this to a robot link is "held" and the warm start of
     #: the next frame moves it rigidly with the robot (``warm_start``).
     hold_distance_m: float = 0.01

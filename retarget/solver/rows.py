@@ -566,8 +566,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
                    float(self_rows.value.min()) if len(self_rows) else np.inf)
     # the surface rows, then the capsule rows and the base-step rows (always in the QP, like the
     # capsule rows; not counted as self-collision), concatenated once
-    constraints = Rows.concat([*con.rows, capsules, base_step_rows(problem, state, targets.t, fr),
-                               path_step_rows(problem, state, fr)])
+    constraints = Rows.concat([*con.rows, capsules, base_step_rows(problem, state, targets.t, fr)])
     tm.lap("self_collision")
 
     cost.append(stance_rows(targets.stance, fr, problem.stance_cfg.weight))
@@ -611,37 +610,3 @@ def base_step_rows(problem: Problem, state: SolverState, t: int, fr: LinkFrames)
                 np.full(6, FIXED, np.intp))
 
 
-def path_links(problem: Problem) -> tuple[np.ndarray, np.ndarray]:
-    """(links, per-axis bound in m) of the links whose second difference is bounded: the pelvis
-    (``SolverConfig.pelvis_step_m``), then the feet and hands (``limb_step_m``); a None bound
-    leaves its links out."""
-    cfg = problem.solver
-    names, bounds = [], []
-    if cfg.pelvis_step_m is not None:
-        names.append(robot.BODY_NAMES[ROOT_LINK])
-        bounds.append(cfg.pelvis_step_m)
-    if cfg.limb_step_m is not None:
-        names += list(robot.END_EFFECTORS)
-        bounds += [cfg.limb_step_m] * len(robot.END_EFFECTORS)
-    return np.array([robot.BODY_NAMES.index(n) for n in names], dtype=np.intp), np.array(bounds, dtype=float)
-
-
-def path_step_rows(problem: Problem, state: SolverState, fr: LinkFrames) -> Rows:
-    """Constraint rows b ∓ (p − p̂) ≥ 0 per world axis for the links of ``path_links``: each
-    origin p within b of its constant-velocity prediction p̂ = 2 p_{t−1} − p_{t−2} (the last two
-    solved frames, ``SolverState.path``). A path whose second difference is bounded by 2c never
-    leaves the line through its neighbours by more than c: the limb and pelvis jumps of
-    ``retarget.checks.feasibility``. Empty on the first two frames of a pass."""
-    links, bound = path_links(problem)
-    if len(state.path) < 2 or len(links) == 0:
-        return Rows.empty()
-    dev = (fr.pos[links] - (2.0 * state.path[-1] - state.path[-2])).ravel()  # (3K,) link-major, x y z
-    b = np.repeat(bound, 3)
-    k = len(dev)
-    phi = np.zeros((2 * k, 12))
-    axis = np.tile(np.arange(3), len(links))
-    phi[np.arange(k), axis] = -1.0  # b − (dev + δp) ≥ 0
-    phi[k + np.arange(k), axis] = 1.0  # b + (dev + δp) ≥ 0
-    body = np.repeat(links, 3)
-    return Rows(np.concatenate([b - dev, b + dev]), np.ones(2 * k), phi, np.concatenate([body, body]),
-                np.full(2 * k, FIXED, np.intp))

@@ -37,7 +37,7 @@ from retarget.solver.contact_annotation import frame_contacts
 from retarget.solver.iterate import FrameStats, SectionTimer, SolverState, frames_at, new_state, retract
 from retarget.solver.problem import Problem
 from retarget.solver.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
-from retarget.solver.rows import linearise, path_links, path_step_rows
+from retarget.solver.rows import linearise
 from retarget.solver.self_rows import self_mesh_rows
 from retarget.solver.stance import stance_targets
 from retarget.solver.targets import frame_targets
@@ -120,7 +120,6 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     state.prev = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
     state.prev_demo = (targets.obj_pos.copy(), targets.obj_rot.copy())
     state.stance = targets.stance
-    state.path = [*state.path[-1:], lin.frames.pos[path_links(problem)[0]].copy()]
     return stats
 
 
@@ -222,17 +221,6 @@ def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> floa
     return float(rows.value.min()) if len(rows) else np.inf
 
 
-def _path_slack(problem: Problem, state: SolverState, q: np.ndarray) -> float:
-    """Smallest path row at ``q`` (m; inf before the paths are bounded): negative when a hand,
-    foot or the pelvis lies off its constant-velocity prediction by more than its bound.
-
-    An arm seed moves the hand to another branch in one frame (deep squat: 10–12 cm); the path
-    rows cannot bring it back within the trust region, so a seed is taken only if it leaves
-    every bounded path no farther off than the plain warm start does."""
-    rows = path_step_rows(problem, state, frames_at(problem, state, q))
-    return float(rows.value.min()) if len(rows) else np.inf
-
-
 def solve_sequence(problem: Problem, progress=None) -> Solution:
     """Solve every frame in order, each warm-started from the previous solution.
 
@@ -262,8 +250,7 @@ def _solve_sequence(problem: Problem, progress) -> Solution:
             # a local SQP cannot leave an arm branch pinned at joint limits (retarget.solver.arm_seed)
             seeded = seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps, free=arms_free)
             if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
-                    _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m) and (
-                    _path_slack(problem, state, seeded) >= min(_path_slack(problem, state, state.q), 0.0)):
+                    _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m):
                 state.q = seeded
         stats.append(solve_frame(problem, state, t))
         fc = frame_contacts(problem, state, t)
