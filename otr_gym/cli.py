@@ -18,8 +18,8 @@ from collections.abc import Callable
 #: command -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("retarget.cli.demo", "run the whole pipeline on the embedded default (synthetic box carry)"),
-    "inspect": ("agents.inspect", "summarise a demonstration or reference file"),
-    "retarget": ("retarget.cli.retarget", "retarget demonstrations (AMASS, OMOMO, synthetic) to G1 references"),
+    "inspect": ("agents.inspect", "summarise a demonstration, reference or deploy-log file"),
+    "retarget": ("retarget.cli.retarget", "retarget demonstrations (AMASS, OMOMO, BVH, our .npz) to G1 references"),
     "score": ("retarget.cli.score", "score a reference against its demonstration (the paper's protocol; "
               "policies: otr evaluate)"),
     "verify": ("retarget.checks.verify", "check a reference: penetration, limits and holds against its demonstration; "
