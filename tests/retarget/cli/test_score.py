@@ -13,6 +13,8 @@ from otr_gym.reference import Reference
 from retarget.cli.score import configure_parser, main, source_mismatch
 from retarget.inputs.demonstration import Demonstration
 
+from clips import tpose
+
 FRAMES_50HZ = 16  # 0.3 s, the demonstration's duration
 
 
@@ -24,16 +26,8 @@ def _parse(argv):
 
 @pytest.fixture(scope="module")
 def tpose_demo() -> Demonstration:
-    """The human standing still in the T-pose for 0.3 s at 30 fps."""
-    from retarget.inputs.human import PART_NAMES, PART_PARENTS, HumanModel, human_tpose
-
-    model = HumanModel()
-    pos, quat = human_tpose(model)
-    T = 10
-    return Demonstration(name="tpose", fps=30.0, part_names=PART_NAMES, part_parents=PART_PARENTS,
-                         part_pos_w=np.tile(pos, (T, 1, 1)), part_quat_w=np.tile(quat, (T, 1, 1)),
-                         surface=model.surface, shape=model.shape, stature_m=model.stature_m,
-                         source={"format": "synthetic", "path": "tpose-demo"})
+    """The human standing still in the T-pose for 0.3 s at 30 fps (``clips.tpose``)."""
+    return tpose({"format": "synthetic", "path": "tpose-demo"})
 
 
 def g1_tpose(frames: int = FRAMES_50HZ, metadata: dict | None = None) -> Reference:

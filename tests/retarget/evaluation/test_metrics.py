@@ -28,6 +28,8 @@ from retarget.geometry.kinematics import tree_distance
 from retarget.inputs.demonstration import Demonstration, DemoObject
 from retarget.inputs.meshes import as_trimesh, signed_distance
 
+from clips import tpose
+
 EPS = 0.02
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -297,16 +299,8 @@ def test_reference_without_the_manipulated_object_is_refused_naming_it(tpose_dem
 
 @pytest.fixture(scope="module")
 def tpose_demo() -> Demonstration:
-    """The human standing still in the T-pose for 0.3 s at 30 fps, soles on z = 0, facing +x."""
-    from retarget.inputs.human import PART_NAMES, PART_PARENTS, HumanModel, human_tpose
-
-    model = HumanModel()
-    pos, quat = human_tpose(model)
-    T = 10
-    return Demonstration(name="tpose", fps=30.0, part_names=PART_NAMES, part_parents=PART_PARENTS,
-                         part_pos_w=np.tile(pos, (T, 1, 1)), part_quat_w=np.tile(quat, (T, 1, 1)),
-                         surface=model.surface, shape=model.shape, stature_m=model.stature_m,
-                         source={"path": "tpose-demo"})
+    """The human standing still in the T-pose for 0.3 s at 30 fps (``clips.tpose``)."""
+    return tpose({"path": "tpose-demo"})
 
 
 @pytest.fixture(scope="module")
