@@ -55,7 +55,10 @@ that face's normal and the friction cone is built about it. Without the terrain,
 recorded on one (Holosoma's crawl up a slope onto a platform) shows up as flight wherever it
 leaves the plane.
 
-Severity of a frame = the largest ratio of a measure to its limit (flight counts as 1).
+Severity of a frame = the largest ratio of a measure to its limit. Flight is not a limit: a
+thrown body needs no support, and a flight that is not ballistic shows as unsupported force (the
+issue's rule: the base wrench within what the contacts supply, except in demonstrated flight,
+where the pelvis follows a ballistic arc); flight phases are reported beside the limits.
 ``FeasibilityReport.intervals`` are the runs of frames at severity ≥ 1; ``hardest`` picks the
 worst frames (one per ``peak_separation_s``) with every measure over its limit there and the
 run it belongs to; ``format_report`` prints the summary and that table, ``plot_feasibility``
@@ -178,7 +181,7 @@ class FeasibilityReport:
         return _runs(self.flight)
 
     def measures(self) -> dict[str, np.ndarray]:
-        """measure -> (T,) ratio to its limit (flight: 1 in flight, else 0)."""
+        """measure -> (T,) ratio to its limit (flight is no limit: see ``flight_frames``)."""
         c = self.cfg
         return {
             "jump": self.root_jump_m / c.jump_m,
@@ -188,12 +191,11 @@ class FeasibilityReport:
             "torque": self.torque_ratio.max(axis=1),
             "unsupported": self.unsupported_fraction / c.unsupported_fraction,
             "sliding": np.nan_to_num(self.slide_speed_mps, nan=0.0).max(axis=1) / c.slide_speed_mps,
-            "flight": self.flight.astype(float),
             "penetration": self.penetration_m / c.penetration_m,
         }
 
     def severity(self) -> np.ndarray:
-        """(T,) the largest ratio of a measure to its limit (flight = 1)."""
+        """(T,) the largest ratio of a measure to its limit."""
         return np.max(np.stack(list(self.measures().values())), axis=0)
 
     @property
@@ -233,7 +235,7 @@ class FeasibilityReport:
         return why
 
     def frames_over(self) -> dict[str, int]:
-        """measure -> how many frames reach its limit (flight: frames in the air)."""
+        """measure -> how many frames reach its limit."""
         return {key: int((ratio >= 1.0).sum()) for key, ratio in self.measures().items()}
 
     def flagged_share(self) -> float:
@@ -246,16 +248,20 @@ class FeasibilityReport:
         return {"flagged_share": self.flagged_share(), "frames_over": self.frames_over(),
                 "limb_jump_peak_m": float(self.limb_jump_m.max(initial=0.0)),
                 "pelvis_jump_peak_m": float(self.root_jump_m.max(initial=0.0)),
-                "torque_peak_ratio": float(self.torque_ratio.max(initial=0.0)), "verdict": self.verdict()}
+                "torque_peak_ratio": float(self.torque_ratio.max(initial=0.0)),
+                "flight_frames": int(self.flight.sum()), "verdict": self.verdict()}
 
     def verdict(self) -> str:
-        """One line: "feasible", or how many frames are over which limits (most frames first)."""
+        """One line: "feasible", or how many frames are over which limits (most frames first);
+        frames in the air are named beside them (no limit: their support is judged as unsupported force)."""
         flagged = int((self.severity() >= 1.0).sum())
+        air = int(self.flight.sum())
+        in_air = f"; {air} frames in the air" if air else ""
         if flagged == 0:
-            return f"verdict: feasible (no frame of {self.num_frames} reaches a limit)"
+            return f"verdict: feasible (no frame of {self.num_frames} reaches a limit{in_air})"
         over = sorted(((n, key) for key, n in self.frames_over().items() if n), reverse=True)
         return (f"verdict: {flagged} of {self.num_frames} frames ({100 * flagged / self.num_frames:.1f} %) over a "
-                f"limit: {', '.join(f'{key} {n}' for n, key in over)}")
+                f"limit: {', '.join(f'{key} {n}' for n, key in over)}{in_air}")
 
     def hardest(self, count: int = 10) -> list[HardFrame]:
         """The ``count`` worst frames at severity ≥ 1, at most one per ``peak_separation_s``."""
@@ -601,7 +607,7 @@ def format_report(r: FeasibilityReport, worst: int = 10) -> str:
         lines.append("no frame reaches a limit")
         return "\n".join(lines)
     lines.append(f"hardest frames ({s['flagged_frames']} of {s['frames']} flagged; severity = largest ratio to a "
-                 f"limit, flight = 1; one per {c.peak_separation_s:g} s):")
+                 f"limit; one per {c.peak_separation_s:g} s):")
     lines.append(f"  {'frame':>5} {'t (s)':>6} {'sev':>6}  {'run (s)':>11}  why")
     t = r.time_s
     for h in hard:

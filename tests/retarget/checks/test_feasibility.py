@@ -82,6 +82,9 @@ def test_a_ballistic_flight_needs_no_support():
     assert r.unsupported_fraction.max() < 0.01
     assert r.summary()["flight"]["unsupported_mean_fraction"][0] < 0.01
     assert r.torque_ratio.max() < 0.01
+    # flight is no limit in itself: a thrown body is feasible, its frames in the air named
+    assert r.intervals == [] and r.flagged_share() == 0.0
+    assert r.verdict() == "verdict: feasible (no frame of 30 reaches a limit; 30 frames in the air)"
 
 
 def test_an_elbow_faster_than_its_motor_is_named_with_its_speed_ratio():
