@@ -3,7 +3,7 @@
 A person's leap is ballistic; the retargeted robot's, following the person's pelvis, link
 poses and contacts, is not: on the AMASS jog the G1's centre of mass leaves the floor at
 1.31 m/s and keeps climbing into mid-flight, where a throw to the same landing needs 2.51 m/s,
-and speeds up 1.1 m/s forward in the air (``python -m retarget.checks.verify``: "not ballistic in the
+and speeds up 1.1 m/s forward in the air (``otr verify``: "not ballistic in the
 air", 112 / 56 / 75 % of the weight unsupported on average in its three flights). A tracking
 policy cannot float, and the jog's policies make their largest errors in and before that leap.
 
