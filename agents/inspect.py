@@ -16,7 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from otr_gym.io import NpzError, check_npz, npz_keys
+from otr_gym.io import NpzError, npz_keys
 from otr_gym.reference import Reference
 from otr_gym.reference_summary import has_reference_keys, reference_summary
 
@@ -37,12 +37,12 @@ def file_kind(path: Path) -> str:
     format); NpzError naming the file when an ``.npz`` file is not a readable archive."""
     if path.suffix.lower() in OTHER_FORMATS or not path.is_file():
         return "demonstration"
-    if path.suffix != ".npz":
-        try:
-            check_npz(path)
-        except (NpzError, OSError):
-            return "demonstration"  # not an archive: its suffix decides (and the reader names it)
-    keys = npz_keys(path)
+    try:
+        keys = npz_keys(path)
+    except (NpzError, OSError):
+        if path.suffix == ".npz":
+            raise
+        return "demonstration"  # not an archive: its suffix decides (and the reader names it)
     if has_reference_keys(keys):
         return "reference"
     if "meta" in keys:  # maybe a deploy log: only then import its reader (torch)

@@ -19,7 +19,6 @@ line; ``envs.terrain``): ``with_terrain`` puts both into the run's env config.
 from __future__ import annotations
 
 import sys
-import zipfile
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -32,7 +31,7 @@ from envs.terrain import listed_terrain, meshes_for_clips, terrain_meshes
 from otr_gym.reference import InvalidReferenceError, Reference, clip_entries
 
 #: What a broken clip file can raise while it is read and prepared.
-_LOAD_ERRORS = (InvalidReferenceError, OSError, ValueError, KeyError, zipfile.BadZipFile)
+_LOAD_ERRORS = (InvalidReferenceError, OSError, ValueError, KeyError)  # NpzError is a ValueError
 
 
 @dataclass(frozen=True)

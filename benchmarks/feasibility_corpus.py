@@ -204,8 +204,10 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(format_summary(summary, failed))
     if args.json:
-        args.json.write_text(json.dumps({"rows": [asdict(r) | {"meets_targets": r.meets_targets} for r in rows],
-                                         "failed": [asdict(c) for c in failed], "summary": summary}, indent=1))
+        from otr_gym.io import write_json
+
+        write_json(args.json, {"rows": [asdict(r) | {"meets_targets": r.meets_targets} for r in rows],
+                               "failed": [asdict(c) for c in failed], "summary": summary}, indent=1)
     return 0
 
 

@@ -28,7 +28,6 @@ def is_reference_file(path: Path) -> bool:
         return False
 
 
-
 def reference_summary(ref: Reference) -> list[tuple[str, str]]:
     rows = [
         ("kind", "reference"),
