@@ -113,6 +113,13 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
         "flight": flight,
     }
     reference = Reference.from_qpos(sol.qpos, demo.fps, objects=objects, contacts=contacts, metadata=metadata)
+    if cfg.trajectory.enabled:  # the paths repaired where they jump (retarget.solver.trajectory)
+        from retarget.solver.trajectory import smooth_trajectory
+
+        reference, report = smooth_trajectory(reference, cfg.trajectory)
+        reference.metadata["trajectory"] = {"flagged": report.flagged, "windows": len(report.windows),
+                                            "moved_m": report.moved_m}
+        solved = time.perf_counter()
     return reference, Timing(built - start, solved - built, len(iterations))
 
 def _jsonable(v) -> bool:

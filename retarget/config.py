@@ -20,6 +20,7 @@ from retarget.solver.problem import SolverConfig
 from retarget.solver.residuals import InteractionConfig
 from retarget.solver.stance import StanceConfig
 from retarget.solver.style import StyleConfig
+from retarget.solver.trajectory import TrajectoryCfg
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs" / "retarget"
 
@@ -46,6 +47,7 @@ class RetargetConfig:
     solver: SolverConfig = field(default_factory=SolverConfig)
     stance: StanceConfig = field(default_factory=StanceConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
+    trajectory: TrajectoryCfg = field(default_factory=TrajectoryCfg)
 
 class ConfigError(ValueError):
     """A configuration file or value that cannot be used; the message names it."""

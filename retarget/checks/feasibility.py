@@ -68,19 +68,28 @@ draws the timeline (PNG).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from otr_gym import robot
 from otr_gym.flags import true_intervals
-from otr_gym.robot_geometry import collision_capsules, collision_points, posed_vertices, visual_meshes
-from otr_gym.rotations import quat_from_vector_pairs, quat_to_matrix, skew
+from otr_gym.robot_geometry import posed_vertices, visual_meshes
+from otr_gym.rotations import skew
 from retarget.checks.ground import Ground
 from retarget.evaluation.feet import least_moving_speed
+from retarget.geometry.dynamics import (
+    GRAVITY,
+    ObjectMass,
+    carried_object_load,
+    cone_edges,
+    g1_dynamics,
+    hand_points,
+    lowpass,
+    twist_steps,
+    velocity_acceleration,
+)
 
-GRAVITY = 9.81
 FOOT_NAMES = ("left", "right")
 #: The limbs whose jumps are measured: ``robot.FEET`` then ``robot.HANDS``.
 LIMB_NAMES = ("left foot", "right foot", "left hand", "right hand")
@@ -116,6 +125,9 @@ class FeasibilityCfg:
     #: Collision geometry deeper than this below the ground (m) is flagged: the simulation's
     #: contacts push it out (our references keep the hands within 2 cm of their ground).
     penetration_m: float = 0.03
+    #: What a carried object weighs (``retarget.geometry.dynamics.ObjectMass``): its weight and
+    #: acceleration load the hands holding it (torques and the base wrench include them).
+    object_mass: ObjectMass = ObjectMass()
     merge_gap_frames: int = 2  # flagged frames closer than this join one interval
     peak_separation_s: float = 0.2  # the hardest-frames table keeps one frame per window
 
@@ -156,6 +168,7 @@ class FeasibilityReport:
     penetration_m: np.ndarray  # (T,) m: how deep the deepest collision point lies below the ground (0: none)
     penetration_link: tuple[str, ...]  # (T,) the link it belongs to ("" where none is below)
     weight_n: float
+    object_load_w: np.ndarray  # (T, 2, 3) N, world: carried objects' force on each hand (robot.HANDS)
     ground: str = "floor z = 0"  # what the robot stands on (``Ground.describe``)
 
     @property
@@ -334,87 +347,6 @@ class FeasibilityReport:
         return out
 
 
-# ------------------------------------------------------------------ model pieces (built once)
-@dataclass(frozen=True)
-class _Model:
-    pin_model: object
-    sole_frames: tuple[tuple[int, ...], tuple[int, ...]]  # pinocchio frame ids per foot
-    sole_points_b: tuple[np.ndarray, np.ndarray]  # (P, 3) in the ankle_roll_link frame
-    link_probes: tuple[int, ...]  # indices into probe_frames of the links other than the feet
-    probe_frames: tuple[tuple[int, float, str], ...]  # collision_points: (frame, radius, body)
-    mass_kg: float
-
-
-@lru_cache(maxsize=1)
-def _model() -> _Model:
-    """The Pinocchio G1 with one operational frame per sole point (the corners, 2-D convex
-    hull, of each foot's collision capsules, on their underside) and one per ``collision_points``
-    point (the probes of the penetration measure). The probes of the links other than the feet
-    are also their support points: the geometry the simulation collides, the hands' boxes
-    rather than the retargeter's coarse hand capsules."""
-    from scipy.spatial import ConvexHull
-
-    model = robot.load_pinocchio_model()
-    frames, points = [], []
-    for foot in robot.FEET:
-        caps = [c for c in collision_capsules() if c.body == foot]
-        ends = np.concatenate([[c.p0, c.p1] for c in caps])
-        ends[:, 2] -= max(c.radius for c in caps)  # the underside of the sole
-        corners = ends[ConvexHull(ends[:, :2]).vertices]
-        frames.append(tuple(robot.add_point_frame(model, foot, p, f"{foot}_sole{k}") for k, p in enumerate(corners)))
-        points.append(corners)
-    probes = [(robot.add_point_frame(model, point.body, point.point, f"{point.geom}_probe{k}"),
-               point.radius, point.body)
-              for k, point in enumerate(collision_points())]
-    links = tuple(i for i, (_, _, body) in enumerate(probes) if body not in robot.FEET)
-    mass = float(sum(model.inertias[i].mass for i in range(model.njoints)))
-    return _Model(model, tuple(frames), tuple(points), links, tuple(probes), mass)
-
-
-def _cone_edges(mu: float, normal: np.ndarray | None = None) -> np.ndarray:
-    """(3, 4) unit generators of the linearised friction cone about ``normal`` (world, unit; +z
-    if None): the +z pyramid turned onto the normal (upward normals, never parallel to x)."""
-    edges = np.array([[mu, 0, 1], [-mu, 0, 1], [0, mu, 1], [0, -mu, 1]], dtype=np.float64).T
-    edges /= np.linalg.norm(edges, axis=0)
-    if normal is None:
-        return edges
-    x, z = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0])
-    return quat_to_matrix(quat_from_vector_pairs(z, x, np.asarray(normal, np.float64), x)) @ edges
-
-
-def _steps(q: np.ndarray, dt: float) -> np.ndarray:
-    """(T−1, nv) Δₖ = difference(qₖ, qₖ₊₁)/dt: the constant twist over [k, k+1] (Pinocchio's
-    free-flyer convention: pelvis frame; joints: plain differences)."""
-    import pinocchio as pin
-
-    m = _model().pin_model
-    return np.stack([pin.difference(m, q[k], q[k + 1]) for k in range(q.shape[0] - 1)]) / dt
-
-
-def _lowpass(x: np.ndarray, cutoff_hz: float | None, fps: float) -> np.ndarray:
-    """Zero-phase 4th-order Butterworth along axis 0 (unchanged when off or too short)."""
-    from scipy.signal import butter, filtfilt
-
-    if not cutoff_hz or cutoff_hz >= 0.5 * fps or x.shape[0] < 16:
-        return x
-    b, a = butter(2, cutoff_hz / (0.5 * fps))  # 2nd order, run forwards and backwards: 4th order
-    return filtfilt(b, a, x, axis=0)
-
-
-def _velocity_acceleration(step: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """(v, a) (T, nv) from half-step twists (T−1, nv): v = mean of the two around a frame,
-    a = their difference / dt (one-sided at the ends)."""
-    T = step.shape[0] + 1
-    v = np.empty((T, step.shape[1]))
-    v[1:-1] = 0.5 * (step[1:] + step[:-1])
-    v[0], v[-1] = step[0], step[-1]
-    a = np.zeros_like(v)
-    if T >= 3:
-        a[1:-1] = (step[1:] - step[:-1]) / dt
-        a[0], a[-1] = a[1], a[-2]
-    return v, a
-
-
 def _contact_fit(base: np.ndarray, jac_base: np.ndarray, reg: np.ndarray, cfg: FeasibilityCfg) -> np.ndarray:
     """λ ≥ 0 (N along the cone edges) minimising ‖W(base − jac_base λ)‖² + Σ εᵢλᵢ² (NNLS on the
     stacked system; ``reg`` the εᵢ)."""
@@ -437,24 +369,25 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
     ground = ground or Ground.floor()
     ref = reference.resampled(cfg.fps)
     T = ref.num_frames
-    mdl = _model()
+    mdl = g1_dynamics()
     m = mdl.pin_model
     data = m.createData()
     dt = 1.0 / cfg.fps
     if T < 3:
         raise ValueError(f"{reference.source}: {T} frames at {cfg.fps:g} fps; the feasibility check needs 3")
     q = robot.qpos_mujoco_to_pinocchio(ref.qpos())
-    step = _steps(q, dt)
-    v_raw, _ = _velocity_acceleration(step, dt)
-    v, a = _velocity_acceleration(_lowpass(step, cfg.lowpass_hz, cfg.fps), dt)
+    load = carried_object_load(ref, hand_points(q), cfg.object_mass, lowpass_hz=cfg.lowpass_hz)
+    step = twist_steps(q, dt)
+    v_raw, _ = velocity_acceleration(step, dt)
+    v, a = velocity_acceleration(lowpass(step, cfg.lowpass_hz, cfg.fps), dt)
     weight = mdl.mass_kg * GRAVITY
     # one cone per ground normal: the floor's and each terrain face's (a handful), built once
-    cones: dict[tuple[float, ...], np.ndarray] = {(0.0, 0.0, 1.0): _cone_edges(cfg.friction)}
+    cones: dict[tuple[float, ...], np.ndarray] = {(0.0, 0.0, 1.0): cone_edges(cfg.friction)}
 
     def edges(n: np.ndarray) -> np.ndarray:
         key = tuple(n.tolist())
         if key not in cones:
-            cones[key] = _cone_edges(cfg.friction, n)
+            cones[key] = cone_edges(cfg.friction, n)
         return cones[key]
 
     sole_ids = [(k, fid) for k, ids in enumerate(mdl.sole_frames) for fid in ids]
@@ -478,6 +411,9 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         accel_limit[t] = robot.EFFORT_LIMIT / np.diag(mass)[6:]
         pin.computeJointJacobians(m, data, q[t])
         pin.updateFramePlacements(m, data)
+        for k, fid in enumerate(mdl.hand_frames):  # what a carried object asks of the hands
+            if load[t, k].any():
+                tau -= pin.getFrameJacobian(m, data, fid, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED)[:3].T @ load[t, k]
         height, normal = ground.under(np.array([data.oMf[fid].translation for fid in point_frames]))
         probe_height, probe_normal = height[n_sole:], normal[n_sole:]
         below = probe_radius - probe_height  # how far each geom's lowest reach lies under the ground
@@ -529,7 +465,7 @@ def check_feasibility(reference, cfg: FeasibilityCfg | None = None, ground: Grou
         torque_ratio=np.abs(torque) / robot.EFFORT_LIMIT, foot_force_w=foot_force, other_force_w=other_force,
         other_support=other_support, unsupported_force_n=unsup_f,
         unsupported_moment_nm=unsup_m, stance=stance, slide_speed_mps=slide, weight_n=weight,
-        ground=ground.describe(), penetration_m=depth, penetration_link=tuple(deepest))
+        ground=ground.describe(), object_load_w=load, penetration_m=depth, penetration_link=tuple(deepest))
 
 
 def _off_neighbours_line(p: np.ndarray) -> np.ndarray:

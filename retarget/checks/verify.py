@@ -182,6 +182,9 @@ def configure_parser(p) -> None:
     p.add_argument("--terrain", help="terrain mesh the clip was recorded on (trimesh-readable, metres, the clip's "
                    "world frame; the file given to env.terrain.meshes): the feasibility check stands the robot on it "
                    "as well as on the floor z = 0")
+    p.add_argument("--object-mass-kg", type=float, default=3.0, metavar="KG",
+                   help="mass of a carried object (kg): its weight and acceleration load the hands holding it in the "
+                        "torques and the base wrench (default %(default)s: the box environment's heaviest draw)")
     p.add_argument("--feasibility-png", help="write the dynamic-feasibility timeline (PNG) here")
     p.add_argument("--feasibility-json", help="write the dynamic-feasibility summary (JSON) here")
 
@@ -202,10 +205,27 @@ def main(args) -> int:
         return 2
     if args.demo is not None:
         _print_checks(reference, args)
-    from retarget.checks.feasibility import write_feasibility
+    from retarget.checks.feasibility import FeasibilityCfg, write_feasibility
+    from retarget.geometry.dynamics import ObjectMass
 
-    write_feasibility(reference, args.feasibility_png, args.feasibility_json, ground=ground)
+    if args.object_mass_kg < 0:
+        print(f"otr verify: --object-mass-kg {args.object_mass_kg:g}: a mass cannot be negative", file=sys.stderr)
+        return 2
+    if args.object is not None:  # a reference without its object's mesh (Holosoma's) is judged with this one
+        _attach_mesh(reference, args.object)
+    cfg = FeasibilityCfg(object_mass=ObjectMass(args.object_mass_kg))
+    write_feasibility(reference, args.feasibility_png, args.feasibility_json, cfg=cfg, ground=ground)
     return 0
+
+
+def _attach_mesh(reference, path: str) -> None:
+    """Give the reference's objects that carry no mesh the mesh in ``path`` (object frame, m)."""
+    from retarget.inputs.meshes import load_mesh
+
+    for obj in reference.objects:
+        if obj.mesh_vertices is None:
+            mesh = load_mesh(path)
+            obj.mesh_vertices, obj.mesh_faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
 
 
 def _print_checks(reference, args) -> None:

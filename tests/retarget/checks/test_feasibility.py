@@ -270,3 +270,39 @@ def test_verify_prints_the_section_and_writes_picture_and_summary(tmp_path, caps
     assert summary["jump"]["peak_m"] == pytest.approx(0.05)
     assert summary["hardest"][0]["frame"] in (24, 25)
     assert summary["penetration"]["peak_m"] < 1e-3 and summary["penetration"]["frames_over"] == 0
+
+
+def _held_box(mass_kg: float):
+    """A standing robot that holds a box between its hands from frame 20 on (the box rests 0.5 m
+    lower, away from the hands, before): the check with the box at ``mass_kg``."""
+    from otr_gym.reference import ObjectTrack
+    from retarget.geometry.dynamics import ObjectMass, hand_points
+
+    qpos = _clip()
+    hands = hand_points(robot.qpos_mujoco_to_pinocchio(qpos))  # (T, 2, 3)
+    centre = hands.mean(axis=1)
+    pos = centre.copy()
+    pos[:20, 2] -= 0.5
+    verts = np.concatenate([hands[0] - centre[0], [[0.0, 0.0, -0.1]]])
+    zeros = np.zeros_like(pos)
+    box = ObjectTrack("box", pos, np.tile([1.0, 0, 0, 0], (50, 1)), zeros, zeros, verts, np.array([[0, 1, 2]]))
+    ref = Reference.from_qpos(qpos, FPS, objects=[box])
+    return check_feasibility(ref, FeasibilityCfg(object_mass=ObjectMass(mass_kg)))
+
+
+def test_a_carried_box_weighs_on_the_hands_and_the_feet_carry_it():
+    held, light = _held_box(3.0), _held_box(0.0)
+    # held, at rest (frames after the lift; the 6 Hz filter's ringing fades): each hand carries half its weight
+    np.testing.assert_allclose(held.object_load_w[35:45], np.tile([[0, 0, -1.5 * GRAVITY]] * 2, (10, 1, 1)),
+                               rtol=0.01, atol=1e-9)
+    assert not held.object_load_w[:15].any()  # on the floor, away from the hands: no load
+    np.testing.assert_allclose(held.foot_force_w[35:45, :, 2].sum(axis=1), held.weight_n + 3.0 * GRAVITY, rtol=0.01)
+    shoulder = robot.JOINT_NAMES.index("left_shoulder_pitch_joint")
+    assert np.abs(held.torque_nm[40, shoulder]) > np.abs(light.torque_nm[40, shoulder]) + 0.5
+    assert not light.object_load_w.any()
+
+
+def test_verify_refuses_a_negative_object_mass(tmp_path, capsys):
+    path = _ref(_clip(10)).save(tmp_path / "stand.npz")
+    assert cli.main(["verify", str(path), "--object-mass-kg", "-1"]) == 2
+    assert "--object-mass-kg -1" in capsys.readouterr().err
