@@ -48,6 +48,19 @@ def lowest_collision_reach(qpos, bodies=None) -> tuple[float, str]:
     return float(z), body
 
 
+def env_checker_messages(env) -> list[str]:
+    """Gymnasium's ``check_env`` on ``env.unwrapped``: the warnings it raises about the env (its
+    own, or about a Box space), as text."""
+    import warnings
+
+    from gymnasium.utils.env_checker import check_env
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_env(env.unwrapped)
+    return [str(w.message) for w in caught if "gymnasium" in str(w.filename) or "Box" in str(w.message)]
+
+
 def load_benchmark(name: str):
     """The module of the script ``benchmarks/NAME.py`` (the folder is not a package)."""
     import importlib.util

@@ -25,6 +25,7 @@ import numpy as np
 from otr_gym import robot
 from otr_gym.robot_geometry import posed_vertices, visual_meshes
 from otr_gym.rotations import quat_to_matrix
+from retarget.geometry.dynamics import ObjectMass
 from retarget.inputs.meshes import as_trimesh, object_mesh, signed_distance
 from retarget.solver.substitute import SubstituteObject
 
@@ -182,7 +183,7 @@ def configure_parser(p) -> None:
     p.add_argument("--terrain", help="terrain mesh the clip was recorded on (trimesh-readable, metres, the clip's "
                    "world frame; the file given to env.terrain.meshes): the feasibility check stands the robot on it "
                    "as well as on the floor z = 0")
-    p.add_argument("--object-mass-kg", type=float, default=3.0, metavar="KG",
+    p.add_argument("--object-mass-kg", type=float, default=ObjectMass().default_kg, metavar="KG",
                    help="mass of a carried object (kg): its weight and acceleration load the hands holding it in the "
                         "torques and the base wrench (default %(default)s: the box environment's heaviest draw)")
     p.add_argument("--feasibility-png", help="write the dynamic-feasibility timeline (PNG) here")
@@ -206,8 +207,6 @@ def main(args) -> int:
     if args.demo is not None:
         _print_checks(reference, args)
     from retarget.checks.feasibility import FeasibilityCfg, write_feasibility
-    from retarget.geometry.dynamics import ObjectMass
-
     if args.object_mass_kg < 0:
         print(f"otr verify: --object-mass-kg {args.object_mass_kg:g}: a mass cannot be negative", file=sys.stderr)
         return 2
@@ -222,9 +221,10 @@ def _attach_mesh(reference, path: str) -> None:
     """Give the reference's objects that carry no mesh the mesh in ``path`` (object frame, m)."""
     from retarget.inputs.meshes import load_mesh
 
-    for obj in reference.objects:
-        if obj.mesh_vertices is None:
-            mesh = load_mesh(path)
+    meshless = [obj for obj in reference.objects if obj.mesh_vertices is None]
+    if meshless:
+        mesh = load_mesh(path)
+        for obj in meshless:
             obj.mesh_vertices, obj.mesh_faces = np.asarray(mesh.vertices, float), np.asarray(mesh.faces)
 
 

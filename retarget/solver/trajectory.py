@@ -8,7 +8,7 @@ docs/results/feasibility.md, "Bounding the paths"). Here the frames around each 
 move together, so a jump is spread evenly over its neighbours on both sides.
 
 Each window [w₀, w₁] (the flagged frames of ``otr verify``'s jump and acceleration measures,
-``pad_frames`` either side, overlapping windows merged) is one sparse QP (ProxQP) on the
+``pad_frames`` either side, overlapping windows merged) is one dense QP (ProxQP) on the
 tangent corrections δₜ (base twist in the pelvis frame, then joints), the frames outside held:
 
     min   Σₜ Σ_b w_b ‖p_b(qₜ ⊕ δₜ) − p_b(q̄ₜ)‖² + w_q ‖(qₜ ⊕ δₜ) ⊖ q̄ₜ‖² + w_s ‖δₜ₊₁ − 2δₜ + δₜ₋₁‖²/dt⁴
@@ -221,9 +221,8 @@ def _windows(over: np.ndarray, pad: int, longest: int) -> list[tuple[int, int]]:
 
 
 def _solve_window(q: np.ndarray, lin: _Linearisation, w0: int, w1: int, cfg: TrajectoryCfg) -> np.ndarray:
-    """(w1 − w0 + 1, nq) the window's new configurations: one QP (module doc), frames outside held."""
+    """(w1 − w0 + 1, nq) the window's new configurations: one dense QP (module doc), frames outside held."""
     import pinocchio as pin
-    import scipy.sparse as sp
     from proxsuite import proxqp
 
     m = g1_dynamics().pin_model
@@ -232,75 +231,58 @@ def _solve_window(q: np.ndarray, lin: _Linearisation, w0: int, w1: int, cfg: Tra
     W = frames.size
     n = W * NV
 
-    def col(t: int) -> int | None:  # first variable of frame t, None outside the window
-        return (t - w0) * NV if w0 <= t <= w1 else None
+    def var(t: int) -> slice | None:  # frame t's variables, None outside the window (held: δ = 0)
+        return slice((t - w0) * NV, (t - w0 + 1) * NV) if w0 <= t <= w1 else None
 
-    # cost: ½ xᵀ H x + gᵀ x
-    hr, hc, hv = [], [], []
+    # cost ½ xᵀ H x + gᵀ x
+    h = np.zeros((n, n))
     g = np.zeros(n)
-
-    def hess(r0: int, c0: int, block: np.ndarray) -> None:
-        rr, cc = np.nonzero(block)
-        hr.append(rr + r0)
-        hc.append(cc + c0)
-        hv.append(block[rr, cc])
-
-    for i, t in enumerate(frames):
-        jt = lin.cost_j[t]
-        hess(i * NV, i * NV, np.einsum("b,bik,bil->kl", lin.cost_w, jt, jt) + cfg.posture_weight * np.eye(NV))
-        g[i * NV:(i + 1) * NV] = (np.einsum("b,bik,bi->k", lin.cost_w, jt, lin.cost_r[t])
-                                  + cfg.posture_weight * lin.posture[t])
+    for t in frames:
+        v, jt = var(t), lin.cost_j[t]
+        h[v, v] += np.einsum("b,bik,bil->kl", lin.cost_w, jt, jt) + cfg.posture_weight * np.eye(NV)
+        g[v] += np.einsum("b,bik,bi->k", lin.cost_w, jt, lin.cost_r[t]) + cfg.posture_weight * lin.posture[t]
         for k in np.flatnonzero(lin.stance[t]):  # a standing foot stays where it stands
             w = cfg.stance_weight * np.array([1.0] * 3 + [0.01] * 3)
             fj = lin.foot_j[t, k]
-            hess(i * NV, i * NV, fj.T @ (w[:, None] * fj))
-            g[i * NV:(i + 1) * NV] += fj.T @ (w * lin.foot_r[t, k])
+            h[v, v] += fj.T @ (w[:, None] * fj)
+            g[v] += fj.T @ (w * lin.foot_r[t, k])
     w2 = cfg.smooth_weight / lin.dt**4
-    for t in range(w0 - 1, w1 + 2):  # the correction's second difference (held frames: δ = 0)
-        taps = [(col(s), c) for s, c in ((t - 1, 1.0), (t, -2.0), (t + 1, 1.0))]
-        for ci, a in taps:
-            for cj, b in taps:
-                if ci is not None and cj is not None:
-                    hess(ci, cj, w2 * a * b * np.eye(NV))
-    h = sp.csc_matrix((np.concatenate(hv), (np.concatenate(hr), np.concatenate(hc))), shape=(n, n))
+    for t in range(w0 - 1, w1 + 2):  # the correction's second difference
+        taps = [(var(s), c) for s, c in ((t - 1, 1.0), (t, -2.0), (t + 1, 1.0)) if var(s) is not None]
+        for vi, a in taps:
+            for vj, b in taps:
+                h[vi, vj] += w2 * a * b * np.eye(NV)
 
-    rows, cols, vals, lo, hi = [], [], [], [], []
-    count = 0
+    # rows lo ≤ C x ≤ hi, one block of rows at a time
+    c_rows, lo, hi = [], [], []
 
-    def add(blocks: list[tuple[int | None, np.ndarray]], low: np.ndarray, high: np.ndarray) -> None:
-        nonlocal count
-        for c0, block in blocks:
-            if c0 is None:
-                continue
-            rr, cc = np.nonzero(block)
-            rows.append(rr + count)
-            cols.append(cc + c0)
-            vals.append(block[rr, cc])
+    def add(blocks: list[tuple[int, np.ndarray]], low: np.ndarray, high: np.ndarray) -> None:
+        row = np.zeros((len(low), n))
+        for t, block in blocks:
+            if var(t) is not None:
+                row[:, var(t)] += block
+        c_rows.append(row)
         lo.append(low)
         hi.append(high)
-        count += len(low)
 
     off = lin.off_line()
     sel = np.zeros((nj, NV))
     sel[:, 6:] = np.eye(nj) / lin.dt**2
     for t in range(max(1, w0 - 1), min(T - 2, w1 + 1) + 1):  # rows touching a window frame
         for k, b in enumerate(lin.jump_bound):
-            add([(col(t), lin.jump_j[t, k]), (col(t - 1), -0.5 * lin.jump_j[t - 1, k]),
-                 (col(t + 1), -0.5 * lin.jump_j[t + 1, k])],
+            add([(t, lin.jump_j[t, k]), (t - 1, -0.5 * lin.jump_j[t - 1, k]), (t + 1, -0.5 * lin.jump_j[t + 1, k])],
                 -b - off[t, k], b - off[t, k])
         a0, lim = lin.accel[t], lin.accel_limit[t]
-        add([(col(t - 1), sel), (col(t), -2.0 * sel), (col(t + 1), sel)],
-            -lim - a0, lim - a0)
-    for i, t in enumerate(frames):
-        block = np.zeros((nj, NV))
-        block[:, 6:] = np.eye(nj)
-        add([(i * NV, block)], np.minimum(robot.JOINT_LOWER - q[t, 7:], 0.0),
-            np.maximum(robot.JOINT_UPPER - q[t, 7:], 0.0))
-    c = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(count, n))
-    qp = proxqp.dense.QP(n, 0, count)
+        add([(t - 1, sel), (t, -2.0 * sel), (t + 1, sel)], -lim - a0, lim - a0)
+    joints = np.zeros((nj, NV))
+    joints[:, 6:] = np.eye(nj)
+    for t in frames:
+        add([(t, joints)], np.minimum(robot.JOINT_LOWER - q[t, 7:], 0.0), np.maximum(robot.JOINT_UPPER - q[t, 7:], 0.0))
+    c = np.concatenate(c_rows)
+    qp = proxqp.dense.QP(n, 0, c.shape[0])
     qp.settings.eps_abs = cfg.eps_abs
     qp.settings.verbose = False
-    qp.init(h.toarray(), g, None, None, c.toarray(), np.concatenate(lo), np.concatenate(hi))
+    qp.init(h, g, None, None, c, np.concatenate(lo), np.concatenate(hi))
     qp.solve()
     delta = qp.results.x.reshape(W, NV)
     return np.stack([pin.integrate(m, q[t], delta[i]) for i, t in enumerate(frames)])

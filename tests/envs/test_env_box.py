@@ -8,7 +8,6 @@ moves through known windows (floor [0, 40), beside the left hand [60, 100), on a
 from __future__ import annotations
 
 import math
-import warnings
 from types import SimpleNamespace
 
 import gymnasium
@@ -17,7 +16,6 @@ import numpy as np
 import pytest
 import torch
 import trimesh
-from gymnasium.utils.env_checker import check_env
 
 import otr_gym  # noqa: F401  (registers the environments)
 from envs.box import make_box_task
@@ -31,7 +29,7 @@ from envs.objects import object_qpos
 from otr_gym.reference import InvalidReferenceError, Reference
 from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_mul
 
-from conftest import BOX_HALF_M, benchmark_sets
+from conftest import BOX_HALF_M, benchmark_sets, env_checker_messages
 
 
 def _cfg(**command) -> BoxEnvCfg:
@@ -375,10 +373,7 @@ def test_observations_name_the_object_terms_and_their_sizes(eval_task):
 
 def test_gymnasium_env_checker_passes_on_the_single_env(box_reference):
     env = gymnasium.make("OTR-G1-BoxTrack-v0", reference=box_reference)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(env.unwrapped)
-    messages = [str(w.message) for w in caught if "gymnasium" in str(w.filename) or "Box" in str(w.message)]
+    messages = env_checker_messages(env)
     assert all("normalized space" in m for m in messages), messages
     env.close()
 
