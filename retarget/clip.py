@@ -118,6 +118,7 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
 
         reference, report = smooth_trajectory(reference, cfg.trajectory)
         reference.metadata["trajectory"] = {"flagged": report.flagged, "windows": len(report.windows),
+                                            "unsolved_windows": report.unsolved,
                                             "moved_m": report.moved_m}
         solved = time.perf_counter()
     return reference, Timing(built - start, solved - built, len(iterations))

@@ -81,6 +81,10 @@ class TrajectoryCfg:
     posture_weight: float = 1.0  # per rad² (m² for the base) of change from the per-frame solution
     smooth_weight: float = 1e-4  # per (rad/s²)² of the correction's own acceleration
     eps_abs: float = 1e-6
+    #: ProxQP's iteration cap per window; a window it cannot solve keeps its frames (jump, bounds
+    #: and joint limits can conflict where a joint sits at its limit: OMOMO sub8_plasticbox_004
+    #: ran for minutes without the cap).
+    max_qp_iterations: int = 1000
 
 
 @dataclass
@@ -89,12 +93,14 @@ class TrajectoryReport:
 
     flagged: list[int]  # frames over a bound at each linearisation
     windows: list[tuple[int, int]]  # the first iteration's windows [first, last]
+    unsolved: int  # windows left as they were because their QP did not converge (all iterations)
     seconds: float
     moved_m: float  # largest body displacement from the per-frame solution (m)
 
     def line(self) -> str:
         return (f"trajectory pass: frames over a bound {' -> '.join(map(str, self.flagged))}, "
-                f"{len(self.windows)} windows, bodies moved up to {100 * self.moved_m:.1f} cm, {self.seconds:.2f} s")
+                f"{len(self.windows)} windows ({self.unsolved} unsolved, kept), "
+                f"bodies moved up to {100 * self.moved_m:.1f} cm, {self.seconds:.2f} s")
 
 
 def smooth_trajectory(reference, cfg: TrajectoryCfg = TrajectoryCfg()):
@@ -108,6 +114,7 @@ def smooth_trajectory(reference, cfg: TrajectoryCfg = TrajectoryCfg()):
     q = q_ref.copy()
     flagged: list[int] = []
     first: list[tuple[int, int]] = []
+    unsolved = 0
     for it in range(cfg.iterations + 1):
         lin = _linearise(q, q_ref, reference.fps, cfg)
         over = lin.over_bounds(cfg)
@@ -117,12 +124,16 @@ def smooth_trajectory(reference, cfg: TrajectoryCfg = TrajectoryCfg()):
         windows = _windows(over, cfg.pad_frames, cfg.max_window_frames)
         first = first or windows
         for w0, w1 in windows:
-            q[w0:w1 + 1] = _solve_window(q, lin, w0, w1, cfg)
+            solved = _solve_window(q, lin, w0, w1, cfg)
+            if solved is None:
+                unsolved += 1
+            else:
+                q[w0:w1 + 1] = solved
     out = Reference.from_qpos(robot.qpos_pinocchio_to_mujoco(q), reference.fps, objects=reference.objects,
                               contacts=reference.contacts, metadata=reference.metadata)
     out.source = reference.source
     moved = float(np.linalg.norm(out.body_pos_w - reference.body_pos_w, axis=-1).max())
-    return out, TrajectoryReport(flagged, first, time.perf_counter() - start, moved)
+    return out, TrajectoryReport(flagged, first, unsolved, time.perf_counter() - start, moved)
 
 
 @dataclass
@@ -220,8 +231,9 @@ def _windows(over: np.ndarray, pad: int, longest: int) -> list[tuple[int, int]]:
     return out
 
 
-def _solve_window(q: np.ndarray, lin: _Linearisation, w0: int, w1: int, cfg: TrajectoryCfg) -> np.ndarray:
-    """(w1 − w0 + 1, nq) the window's new configurations: one dense QP (module doc), frames outside held."""
+def _solve_window(q: np.ndarray, lin: _Linearisation, w0: int, w1: int, cfg: TrajectoryCfg) -> np.ndarray | None:
+    """(w1 − w0 + 1, nq) the window's new configurations: one dense QP (module doc), frames outside
+    held; None when ProxQP does not converge within ``max_qp_iterations``."""
     import pinocchio as pin
     from proxsuite import proxqp
 
@@ -282,7 +294,10 @@ def _solve_window(q: np.ndarray, lin: _Linearisation, w0: int, w1: int, cfg: Tra
     qp = proxqp.dense.QP(n, 0, c.shape[0])
     qp.settings.eps_abs = cfg.eps_abs
     qp.settings.verbose = False
+    qp.settings.max_iter = cfg.max_qp_iterations
     qp.init(h, g, None, None, c, np.concatenate(lo), np.concatenate(hi))
     qp.solve()
+    if qp.results.info.status != proxqp.QPSolverOutput.PROXQP_SOLVED:
+        return None
     delta = qp.results.x.reshape(W, NV)
     return np.stack([pin.integrate(m, q[t], delta[i]) for i, t in enumerate(frames)])

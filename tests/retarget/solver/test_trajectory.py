@@ -65,3 +65,14 @@ def test_a_feasible_clip_is_left_exactly_as_it_was():
     out, report = smooth_trajectory(ref, ON)
     np.testing.assert_array_equal(out.joint_pos, ref.joint_pos)
     assert report.flagged == [0] and report.windows == [] and report.moved_m == 0.0
+
+
+def test_a_window_whose_qp_does_not_converge_keeps_its_frames():
+    """With ProxQP allowed a single iteration no window converges: the pass reports them and
+    leaves the clip as it was instead of applying an unfinished answer."""
+    qpos = _standing()
+    qpos[20:25, 7 + robot.JOINT_NAMES.index("left_shoulder_roll_joint")] += 1.0
+    ref = _ref(qpos)
+    out, report = smooth_trajectory(ref, TrajectoryCfg(enabled=True, max_qp_iterations=1))
+    assert report.unsolved >= 1 and report.windows
+    np.testing.assert_array_equal(out.joint_pos, ref.joint_pos)
