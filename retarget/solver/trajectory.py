@@ -84,7 +84,7 @@ class TrajectoryCfg:
     #: ProxQP's iteration cap per window; a window it cannot solve keeps its frames (jump, bounds
     #: and joint limits can conflict where a joint sits at its limit: OMOMO sub8_plasticbox_004
     #: ran for minutes without the cap).
-    max_qp_iterations: int = 1000
+    max_qp_iterations: int = 30  # ProxQP outer iterations (a failing window took ~4 s at 30, ~85 s at 1000)
 
 
 @dataclass
