@@ -20,13 +20,14 @@ q̄ is the per-frame solution (the interaction-fidelity optimum: the pass stays 
 the limits allow; hands and feet, the contacts, dearest), positions linearised with Pinocchio's
 frame Jacobians and re-linearised ``iterations`` times (Gauss–Newton). Accelerations are the
 check's (twists low-passed at ``lowpass_hz``) plus the raw second differences of the correction,
-which the cost keeps smooth. The rows always have a solution (a path at constant velocity meets
-both), so no row is relaxed. Units: metres, radians, seconds.
+which the cost keeps smooth. The rows are hard: where they conflict (a joint at its limit, the
+linearisation far off) ProxQP does not converge within ``max_qp_iterations`` and the window keeps
+its frames. Units: metres, radians, seconds.
 
 Off by default (``trajectory.enabled``): measured on the five shared clips
-(docs/results/feasibility.md, "A trajectory pass") it removes the limb and pelvis jumps and most
-over-accelerations, but it has no collision rows, so it pushes links into the ground and the
-objects (up to 16 mm), and standing feet slide more. Not here either: the torques and the base
+(docs/results/feasibility.md, "A trajectory pass over windows of frames") it removes the limb
+and pelvis jumps and most over-accelerations, but it has no collision rows, so it pushes links
+into the ground and the objects (up to 16 mm), and standing feet slide more. Not here either: the torques and the base
 wrench. With the contact forces as variables and the inverse dynamics linearised
 (``pinocchio.computeRNEADerivatives``) the same QP became too ill-conditioned to solve at this
 size: ProxQP's sparse solver did not return within 5 minutes on 30 frames, OSQP needed 6 s for
@@ -63,7 +64,7 @@ class TrajectoryCfg:
     (limbs 3 cm and pelvis 1 cm off their neighbours' line; 1× the motor-alone acceleration), so
     the check passes with the linearisation's slack."""
 
-    enabled: bool = False  # off by default: docs/results/feasibility.md, "A trajectory pass"
+    enabled: bool = False  # off by default: docs/results/feasibility.md, "A trajectory pass over windows of frames"
     iterations: int = 3  # Gauss–Newton relinearisations
     limb_jump_m: float = 0.025  # feet and hands: bound per axis = this / √3 (m)
     pelvis_jump_m: float = 0.008
