@@ -43,18 +43,11 @@ from pathlib import Path
 import numpy as np
 
 from otr_gym.io import load_npz, save_npz
-from otr_gym.rotations import matrix_to_quat
+from otr_gym.object_box import BoxFitCfg, BoxShape, fit_box
 
 
 class CollisionShapeError(ValueError):
     """An object mesh that cannot be turned into collision geometry; the message names it."""
-
-
-@dataclass(frozen=True)
-class BoxShape:
-    half_extents: np.ndarray  # (3,) m
-    pos: np.ndarray  # (3,) m, object frame
-    quat_wxyz: np.ndarray  # (4,) object frame
 
 
 @dataclass(frozen=True)
@@ -67,14 +60,10 @@ CollisionShape = BoxShape | HullShape
 
 
 @dataclass(frozen=True)
-class CollisionCfg:
-    """How reference meshes become collision geometry (see the module docstring)."""
+class CollisionCfg(BoxFitCfg):
+    """How reference meshes become collision geometry (see the module docstring); the
+    box-likeness thresholds are ``BoxFitCfg``'s."""
 
-    min_hull_fill: float = 0.85
-    min_on_box: float = 0.9
-    min_covered: float = 0.8
-    tolerance: float = 0.15  # × the smallest half-extent
-    samples: int = 4000  # surface samples per score
     max_box_pieces: int = 16  # a union of more disjoint pieces is decomposed instead
     # CoACD (run_coacd arguments): concavity threshold and budget; settings that took 6-15 s
     # on OMOMO's scanned table and chair (30-55 k faces) with 6-16 hulls.
@@ -84,45 +73,6 @@ class CollisionCfg:
     coacd_preprocess_resolution: int = 30
     coacd_mcts_iterations: int = 60
     coacd_mcts_nodes: int = 10
-    seed: int = 0
-
-
-@dataclass(frozen=True)
-class BoxFit:
-    box: BoxShape
-    hull_fill: float
-    on_box: float
-    covered: float
-
-    def is_box(self, cfg: CollisionCfg) -> bool:
-        return self.hull_fill >= cfg.min_hull_fill and self.on_box >= cfg.min_on_box and self.covered >= cfg.min_covered
-
-
-def fit_box(vertices: np.ndarray, faces: np.ndarray, cfg: CollisionCfg = CollisionCfg()) -> BoxFit:
-    """The minimum-volume oriented bounding box of a mesh and its box-likeness scores."""
-    import trimesh
-    from scipy.spatial import cKDTree
-
-    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
-    hull = mesh.convex_hull
-    obb = hull.bounding_box_oriented
-    transform = np.asarray(obb.primitive.transform, np.float64)
-    half = 0.5 * np.asarray(obb.primitive.extents, np.float64)
-    tol = cfg.tolerance * float(half.min())
-    to_box = np.linalg.inv(transform)
-    points, _ = trimesh.sample.sample_surface(mesh, cfg.samples, seed=cfg.seed)
-    local = trimesh.transform_points(points, to_box)
-    gap = np.abs(np.min(half - np.abs(local), axis=1))  # distance to the nearest box face
-    box_points, _ = trimesh.sample.sample_surface(trimesh.creation.box(extents=2 * half), cfg.samples, seed=cfg.seed)
-    nearest, _ = cKDTree(local).query(box_points)
-    # box points are compared with mesh *samples*: allow for their spacing on thin pieces
-    spacing = float(np.sqrt(mesh.area / cfg.samples))
-    rot = transform[:3, :3]
-    if np.linalg.det(rot) < 0:  # keep a right-handed frame (flip one axis; a box is symmetric)
-        rot = rot * np.array([1.0, 1.0, -1.0])
-    box = BoxShape(half_extents=half, pos=transform[:3, 3].copy(), quat_wxyz=matrix_to_quat(rot))
-    return BoxFit(box, float(hull.volume / np.prod(2 * half)), float(np.mean(gap < tol)),
-                  float(np.mean(nearest < max(tol, 2.0 * spacing))))
 
 
 def load_mesh(path: str | Path, what: str) -> tuple[np.ndarray, np.ndarray]:

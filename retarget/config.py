@@ -16,6 +16,7 @@ import yaml
 from otr_gym.config import from_dict, load_yaml_mapping
 from retarget.geometry.channels import GeometryConfig
 from retarget.solver.flight import FlightConfig
+from retarget.solver.grasp import GraspCfg
 from retarget.solver.problem import SolverConfig
 from retarget.solver.residuals import InteractionConfig
 from retarget.solver.stance import StanceConfig
@@ -48,6 +49,7 @@ class RetargetConfig:
     stance: StanceConfig = field(default_factory=StanceConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
     trajectory: TrajectoryCfg = field(default_factory=TrajectoryCfg)
+    grasp: GraspCfg = field(default_factory=GraspCfg)
 
 class ConfigError(ValueError):
     """A configuration file or value that cannot be used; the message names it."""

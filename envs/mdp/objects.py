@@ -116,7 +116,9 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
     (OMOMO's lift) would otherwise vote for it, and narrowing it would lift the box's bottom
     face off the floor (3.2 cm on OMOMO ``sub3_largebox_003``: the box then rests that much
     below its reference). The grasped axis's half-extent shrinks (both faces, the centre stays)
-    by the ``grasp_fit_quantile`` of those frames' penetration depths, at most by half. The
+    by the ``grasp_fit_quantile`` of those frames' penetration depths, at most by half; a
+    reference made with a designed squeeze (``metadata["grasp"]["squeeze_m"]``, the retargeter's
+    grasp pass: hands that deep on purpose) counts only the depth beyond it. The
     height stays, so the box still rests on the floor and the table where the reference has
     it. The mass stays. Other shapes are kept; ``objects`` itself is returned when nothing
     changes.
@@ -127,6 +129,7 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
     depth: dict[int, list[list[float]]] = {k: [[], [], []] for k in range(len(moving))}
     resting: dict[int, np.ndarray] = {k: np.zeros(3) for k in range(len(moving))}  # votes for the vertical axis
     for ref in refs:
+        squeeze = float((ref.metadata.get("grasp") or {}).get("squeeze_m", 0.0))  # retarget.solver.grasp
         hand_d, support_d = geometry.distances(ref, moving, static, hands=True)
         target = _hand_points_in_object(ref, moving, cfg)  # (T, H, M, 3)
         for k, i in enumerate(moving):
@@ -149,8 +152,8 @@ def fit_boxes_to_grasps(refs: Sequence[Reference], objects: SceneObjects, model:
                 rows = np.arange(len(local))
                 apart = np.argmax(np.abs(local[rows, h0] - local[rows, h1]), axis=-1)
                 axis = np.where(both[:, None], apart[:, None], axis)
-            for a in range(3):
-                depth[k][a].extend((-hand_d[:, :, k][inside & (axis == a)]).tolist())
+            for a in range(3):  # the squeeze the reference was made with is meant: only the excess counts
+                depth[k][a].extend((-hand_d[:, :, k][inside & (axis == a)] - squeeze).tolist())
     out, changed = list(objects.objects), False
     for k, i in enumerate(moving):
         obj = objects.objects[i]

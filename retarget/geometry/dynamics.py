@@ -168,13 +168,18 @@ def carried_object_load(reference, hand_points_w: np.ndarray, masses: ObjectMass
 
 
 def _hands_near(obj, hand_points_w: np.ndarray, reach_m: float) -> np.ndarray:
-    """(T, 2) bool: each hand's contact point within ``reach_m`` of the object (its mesh's
-    nearest vertex, or its origin when it has no mesh)."""
+    """(T, 2) bool: each hand's contact point within ``reach_m`` of the object (of its mesh's
+    surface, sampled every ~1 cm with its vertices, or of its origin when it has no mesh)."""
     rel = hand_points_w - obj.pos_w[:, None, :]  # (T, 2, 3)
     local = np.einsum("tji,tkj->tki", quat_to_matrix(obj.quat_w), rel)  # into the object frame
     if obj.mesh_vertices is None:
         return np.linalg.norm(local, axis=-1) <= reach_m
+    import trimesh
     from scipy.spatial import cKDTree
 
-    dist, _ = cKDTree(np.asarray(obj.mesh_vertices, np.float64)).query(local.reshape(-1, 3))
+    mesh = trimesh.Trimesh(np.asarray(obj.mesh_vertices, np.float64), np.asarray(obj.mesh_faces), process=False)
+    # a coarse mesh (a box of 8 vertices) has its vertices far from the middle of its faces
+    count = int(min(max(mesh.area / 1e-4, 100), 50_000))
+    samples, _ = trimesh.sample.sample_surface(mesh, count, seed=0)
+    dist, _ = cKDTree(np.concatenate([mesh.vertices, samples])).query(local.reshape(-1, 3))
     return dist.reshape(local.shape[:2]) <= reach_m

@@ -465,6 +465,19 @@ def test_a_box_the_reference_hand_starts_inside_is_narrowed_on_the_grasped_axis_
     assert np.quantile(left_hand_gap(task), 0.25) >= -1e-3  # after the fit it starts (at most) touching it
 
 
+def test_a_reference_made_with_a_designed_squeeze_keeps_it(box_reference_geometry, tmp_path):
+    # the retargeter's grasp pass (retarget.solver.grasp) puts the hands that deep on purpose
+    # and records it: the fit narrows the box only by what lies beyond it
+    ref = Reference.load(box_reference_geometry)
+    wide = trimesh.creation.box(extents=(2 * BOX_HALF_M, 2 * BOX_HALF_M + 0.06, 2 * BOX_HALF_M))
+    ref.objects[0].mesh_vertices, ref.objects[0].mesh_faces = np.asarray(wide.vertices), np.asarray(wide.faces)
+    plain = make_box_task(ref.save(tmp_path / "wide.npz"), 1, "mujoco", "cpu", evaluation=True).scene.moving[0]
+    lateral = int(np.flatnonzero(plain.grasp_shrink_m)[0])
+    ref.metadata["grasp"] = {"squeeze_m": float(plain.grasp_shrink_m[lateral]) - 0.002}
+    meant = make_box_task(ref.save(tmp_path / "squeezed.npz"), 1, "mujoco", "cpu", evaluation=True).scene.moving[0]
+    assert meant.grasp_shrink_m[lateral] == pytest.approx(0.002, abs=1e-6)
+
+
 def test_a_box_held_between_both_hands_at_its_bottom_edges_is_narrowed_between_the_hands_not_in_height(
         box_reference_geometry, tmp_path):
     # OMOMO's lift: both hands at the box's bottom edges. Their points lie nearest to the bottom
