@@ -92,6 +92,22 @@ def largebox_reference(shared_data, tmp_path_factory) -> Path:
         tmp_path_factory.mktemp("refs") / "sub3_largebox_003.npz")
 
 
+@pytest.fixture(scope="session")
+def largebox_reference_per_frame(shared_data, tmp_path_factory) -> Path:
+    """The same without the grasp pass (``grasp.enabled: false``): the person's grip, the hands
+    under the box's bottom edges, as the per-frame solve makes it."""
+    from dataclasses import replace
+
+    from retarget.clip import retarget_demonstration
+    from retarget.config import RetargetConfig
+    from retarget.inputs.readers import load_demonstration
+
+    demo = load_demonstration(shared_data / "omomo" / "sub3_largebox_003.pt", shared_data / "objects" / "largebox.obj")
+    cfg = RetargetConfig()
+    return retarget_demonstration(demo, replace(cfg, grasp=replace(cfg.grasp, enabled=False))).save(
+        tmp_path_factory.mktemp("refs") / "sub3_largebox_003.npz")
+
+
 # ------------------------------------------------------------------ generated G1 references
 @pytest.fixture(scope="session")
 def standing_reference(tmp_path_factory) -> Path:

