@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -125,8 +127,12 @@ def test_the_same_demonstration_gives_the_same_reference():
 
 
 def test_penetration_never_exceeds_0p3mm_on_a_synthetic_box_lift():
+    """The per-frame solve's guarantee. The grasp pass after it squeezes the hands' collision
+    boxes 8 mm into the faces on purpose, which on this exact box takes the hands' meshes 7.7 mm
+    in (tests/retarget/solver/test_grasp.py checks the collision geoms' depth)."""
     demo = resample_demonstration(clip("box_carry", 130, 175), 50.0)  # reach, grasp, lift
-    ref = retarget_demonstration(demo, RetargetConfig())
+    cfg = RetargetConfig()
+    ref = retarget_demonstration(demo, replace(cfg, grasp=replace(cfg.grasp, enabled=False)))
     assert [o.name for o in ref.objects] == ["box", "table"]
     assert ref.contacts.distance.min() >= -EPS_COL  # the solver's own probes, every channel
     checks = check_reference(ref, demo)  # exact distances of the visual-mesh vertices
