@@ -42,6 +42,7 @@ class CycleOutput:
     action: np.ndarray | None  # raw policy output (before the clip)
     tilt_rad: float
     mpjpe_m: float
+    ref_tilt_rad: float = float("nan")  # the reference's torso tilt on the frame the robot should be on
 
 
 @dataclass
@@ -74,6 +75,8 @@ class Controller:
         self._ramp_q0: np.ndarray | None = None
         self._ramp_t0 = 0.0
         self._track_t0 = 0.0
+        self._blend_t0 = 0.0
+        self._end_t0 = 0.0
         self.frame = -1
         self.last_action = np.zeros(robot.NUM_JOINTS)
         self._remote_prev = 0
@@ -120,11 +123,24 @@ class Controller:
                 out.command = safety.ramp_command(self._ramp_q0, self.spec.default_joint_pos, progress)
         if self.stage == Stage.HOLD:
             if self.cfg.auto_start or keys & KEY_START:
-                self._start_tracking(inp.t_s, "auto_start" if self.cfg.auto_start else "operator")
+                self._start(inp.t_s, "auto_start" if self.cfg.auto_start else "operator")
             else:
                 out.command = safety.ramp_command(self.spec.default_joint_pos, self.spec.default_joint_pos, 1.0)
+        if self.stage == Stage.BLEND:
+            progress = (inp.t_s - self._blend_t0) / self.cfg.safety.blend_s
+            if progress >= 1.0:
+                self._start_tracking(inp.t_s, "blend_done")
+            else:
+                out.command = safety.blend_command(self.spec.default_joint_pos, self.builder.reference_joint_pos(0),
+                                                   self.spec.kp, self.spec.kd, progress, self.cfg.safety)
         if self.stage == Stage.TRACK:
             self._track(inp.t_s, out)
+        if self.stage == Stage.END:
+            if inp.t_s - self._end_t0 >= self.cfg.safety.end_hold_s:
+                self._damp(DampReason.CLIP_END)
+            else:
+                out.command = safety.policy_command(self.builder.reference_joint_pos(-1), self.spec.kp,
+                                                    self.spec.kd, self.cfg.safety)
         if self.stage == Stage.DAMP:
             out.command = safety.damping_command(self.cfg.safety)
         out.stage = self.stage
@@ -144,6 +160,14 @@ class Controller:
         self.state = inp.state
         self.cycles_without_state = 0
 
+    def _start(self, t_s: float, reason: str) -> None:
+        """From HOLD: the blend to the reference's first frame, or straight to tracking."""
+        if self.cfg.safety.blend_s > 0.0:
+            self._blend_t0 = t_s
+            self.stages.go(Stage.BLEND, self.cycle, reason)
+        else:
+            self._start_tracking(t_s, reason)
+
     def _start_tracking(self, t_s: float, reason: str) -> None:
         self.builder.align(self.builder.heading_alignment(self.state))
         self.frame = 1  # the robot stands on frame 0; the observation shows the target frame 1
@@ -153,7 +177,11 @@ class Controller:
 
     def _track(self, t_s: float, out: CycleOutput) -> None:
         if self.frame >= self.builder.num_frames:
-            self._damp(DampReason.CLIP_END)
+            if self.cfg.safety.end_hold_s > 0.0:
+                self._end_t0 = t_s
+                self.stages.go(Stage.END, self.cycle, DampReason.CLIP_END)
+            else:
+                self._damp(DampReason.CLIP_END)
             return
         if self.cfg.duration_s is not None and t_s - self._track_t0 >= self.cfg.duration_s:
             self._damp(DampReason.DURATION)
@@ -163,6 +191,7 @@ class Controller:
         raw = np.asarray(self.policy(obs), dtype=np.float64).reshape(-1)
         out.observation, out.action, out.frame = obs, raw, self.frame
         out.mpjpe_m = self.builder.mpjpe_m(s)
+        out.ref_tilt_rad = self.builder.reference_tilt_rad(self.frame - 1)
         if fault := safety.action_fault(raw):
             self._damp(fault)
             return

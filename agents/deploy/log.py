@@ -73,7 +73,7 @@ class CycleLog:
             "state_tick_ms": ((), np.int64), "state_mode_machine": ((), np.int16), "state_remote_keys": ((), np.int32),
             "stage": ((), np.int8), "frame": ((), np.int32), "observation": ((observation_dim,), np.float32),
             "action": ((J,), np.float64), "command": ((5, J), np.float64), "tilt_rad": ((), np.float64),
-            "mpjpe_m": ((), np.float64),
+            "mpjpe_m": ((), np.float64), "ref_tilt_rad": ((), np.float64),
         }
         self._arrays = {k: self._empty(k, self.CHUNK) for k in self._shapes}
 
@@ -96,7 +96,7 @@ class CycleLog:
             a["state_tick_ms"][i], a["state_mode_machine"][i] = s.tick_ms, s.mode_machine
             a["state_remote_keys"][i] = s.remote_keys
         a["stage"][i], a["frame"][i] = out.stage, out.frame
-        a["tilt_rad"][i], a["mpjpe_m"][i] = out.tilt_rad, out.mpjpe_m
+        a["tilt_rad"][i], a["mpjpe_m"][i], a["ref_tilt_rad"][i] = out.tilt_rad, out.mpjpe_m, out.ref_tilt_rad
         if out.observation is not None:
             a["observation"][i] = out.observation
         if out.action is not None:
@@ -231,4 +231,23 @@ def summary_rows(log: DeployLog) -> list[tuple[str, str]]:
         rows.append(("MPJPE", f"{np.nanmean(a['mpjpe_m'][track]) * 1e3:.1f} mm mean over tracking "
                               f"(max {np.nanmax(a['mpjpe_m'][track]) * 1e3:.1f} mm)"))
         rows.append(("torso tilt", f"max {np.degrees(np.nanmax(a['tilt_rad'][track])):.1f}° while tracking"))
+        if (start := start_tilt_error_deg(log)) is not None:
+            rows.append(("start", f"torso tilt within {start:.1f}° of the reference's in the first "
+                                  f"{START_WINDOW_S:g} s of tracking"))
     return rows
+
+
+#: The window after the start of tracking in which ``start_tilt_error_deg`` looks for a lurch (s).
+START_WINDOW_S = 1.0
+
+
+def start_tilt_error_deg(log: DeployLog) -> float | None:
+    """Largest |torso tilt − the reference's| (deg) over the first ``START_WINDOW_S`` of tracking;
+    None for a log without tracking or without the reference's tilt (logs before it was recorded)."""
+    a = log.arrays
+    track = np.flatnonzero(a["stage"] == Stage.TRACK)
+    if "ref_tilt_rad" not in a or not track.size:
+        return None
+    first = track[a["t_s"][track] - a["t_s"][track[0]] < START_WINDOW_S]
+    error = np.abs(a["tilt_rad"][first] - a["ref_tilt_rad"][first])
+    return float(np.degrees(np.nanmax(error))) if np.isfinite(error).any() else None

@@ -182,6 +182,14 @@ class ObservationBuilder:
         return quat_yaw(quat_mul(body_quat[self.anchor], quat_conj(ref_anchor)))
 
     # ------------------------------------------------------------ per cycle
+    def reference_joint_pos(self, frame: int) -> np.ndarray:
+        """The reference's joint positions at ``frame`` (rad, G1 order; -1: the last frame)."""
+        return self.motion.joint_pos[frame].double().numpy().copy()
+
+    def reference_tilt_rad(self, frame: int) -> float:
+        """The reference's torso (anchor) tilt from vertical at ``frame`` (rad)."""
+        return torso_tilt_rad(self.ref_body_quat_w[frame, self.anchor].double().numpy())
+
     def tracking_state(self, state: RobotState, frame: int, action: np.ndarray) -> TrackingState:
         """The one-env ``TrackingState`` of the robot in ``state`` against target ``frame``;
         ``action`` is the (clipped) raw action applied during the last policy step."""

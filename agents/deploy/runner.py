@@ -113,7 +113,9 @@ def _controller_cfg_dict(cfg: ControllerCfg) -> dict:
 
 
 def _controller_cfg_from_dict(d: dict) -> ControllerCfg:
-    return ControllerCfg(safety=SafetyCfg(**d["safety"]), auto_start=d["auto_start"], duration_s=d["duration_s"])
+    # logs written before the hold → track blend and the end hold had neither: replay them without
+    safety = {"blend_s": 0.0, "end_hold_s": 0.0, **d["safety"]}
+    return ControllerCfg(safety=SafetyCfg(**safety), auto_start=d["auto_start"], duration_s=d["duration_s"])
 
 
 class Runner:
@@ -230,6 +232,12 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="stop tracking (damp) after this many seconds (default: no limit)")
     p.add_argument("--ramp", type=float, default=SafetyCfg.ramp_s,
                    help="start-up ramp to the default pose (s; default: %(default)s)")
+    p.add_argument("--blend", type=float, default=SafetyCfg.blend_s,
+                   help="on start: targets from the default pose to the reference's first frame and gains from "
+                        "the start-up ones to the policy's over this long (s; 0: none; default: %(default)s)")
+    p.add_argument("--end-hold", type=float, default=SafetyCfg.end_hold_s,
+                   help="at the clip's end: hold its last frame this long, then damp (s; 0: damp at once; "
+                        "default: %(default)s)")
     p.add_argument("--tilt-limit", type=float, default=float(np.degrees(SafetyCfg.tilt_limit_rad)),
                    help="damp when the torso tilts more than this from vertical (degrees; default: %(default).1f)")
     p.add_argument("--stale-cycles", type=int, default=SafetyCfg.stale_cycles,
@@ -282,7 +290,8 @@ def main(args: argparse.Namespace) -> int:
                 raise FileNotFoundError(f"{args.policy}: no --reference given and the metadata's reference "
                                         f"{reference!r} is not a file")
         safety = SafetyCfg(stale_cycles=args.stale_cycles, tilt_limit_rad=float(np.radians(args.tilt_limit)),
-                           soft_limit_factor=args.soft_limit_factor, ramp_s=args.ramp)
+                           soft_limit_factor=args.soft_limit_factor, ramp_s=args.ramp, blend_s=args.blend,
+                           end_hold_s=args.end_hold)
         cfg = ControllerCfg(safety=safety, auto_start=args.auto_start, duration_s=args.duration)
         controller = build_controller(args.policy, reference, cfg)
         runner = Runner(controller, args.policy, reference, args.domain_id, args.interface, args.damp_s, args.spin_us,

@@ -2,7 +2,11 @@
 
 Stages: WAIT (no LowState yet: nothing is sent) → RAMP (joint targets interpolate from the
 measured pose to the default pose over ``ramp_s`` with the stiff start-up gains) → HOLD
-(default pose, start-up gains, until the operator starts) → TRACK (the policy) → DAMP.
+(default pose, start-up gains, until the operator starts) → BLEND (targets from the default pose
+to the reference's first frame and gains from the start-up ones to the policy's, a smoothstep over
+``blend_s``: the policy starts on the pose and the gains it was trained on) → TRACK (the policy)
+→ END (the reference's last frame held with the policy's gains for ``end_hold_s``) → DAMP.
+``blend_s`` and ``end_hold_s`` 0 skip BLEND and END.
 
 DAMP is latched: once entered, only a restart of the runner leaves it. Every DAMP command has
 kp = 0 (q targets released), dq = 0, τ = 0 and the damping kd, so the joints only resist
@@ -36,6 +40,8 @@ class Stage(IntEnum):
     HOLD = 2
     TRACK = 3
     DAMP = 4
+    BLEND = 5  # numbered after DAMP: the logs of earlier versions keep their stage numbers
+    END = 6
 
 
 class DampReason:
@@ -65,6 +71,8 @@ class SafetyCfg:
     tilt_limit_rad: float = 0.8  # torso tilt from vertical (≈ 46°)
     soft_limit_factor: float = 0.9  # joint targets clamped to this fraction of the range (docs/environment.md §4)
     ramp_s: float = 2.0  # start-up ramp to the default pose
+    blend_s: float = 1.0  # hold → track: default pose and start-up gains → the reference's first frame, policy gains
+    end_hold_s: float = 1.0  # the reference's last frame held this long before damping
     damping_kd: np.ndarray = field(default_factory=lambda: STARTUP_KD.copy())
 
     def __post_init__(self) -> None:
@@ -74,8 +82,9 @@ class SafetyCfg:
             raise ValueError(f"tilt_limit_rad must be in (0, π], got {self.tilt_limit_rad}")
         if not 0.0 < self.soft_limit_factor <= 1.0:
             raise ValueError(f"soft_limit_factor must be in (0, 1], got {self.soft_limit_factor}")
-        if self.ramp_s < 0.0:
-            raise ValueError(f"ramp_s must be ≥ 0, got {self.ramp_s}")
+        for name in ("ramp_s", "blend_s", "end_hold_s"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"{name} must be ≥ 0, got {getattr(self, name)}")
         self.damping_kd = np.broadcast_to(np.asarray(self.damping_kd, dtype=np.float64), (robot.NUM_JOINTS,)).copy()
 
     def soft_limits(self) -> tuple[np.ndarray, np.ndarray]:
@@ -96,8 +105,10 @@ class StageMachine:
     ALLOWED = {
         Stage.WAIT: {Stage.RAMP, Stage.DAMP},
         Stage.RAMP: {Stage.HOLD, Stage.TRACK, Stage.DAMP},
-        Stage.HOLD: {Stage.TRACK, Stage.DAMP},
-        Stage.TRACK: {Stage.DAMP},
+        Stage.HOLD: {Stage.BLEND, Stage.TRACK, Stage.DAMP},
+        Stage.BLEND: {Stage.TRACK, Stage.DAMP},
+        Stage.TRACK: {Stage.END, Stage.DAMP},
+        Stage.END: {Stage.DAMP},
         Stage.DAMP: set(),
     }
 
@@ -146,6 +157,24 @@ def ramp_command(q_start: np.ndarray, q_goal: np.ndarray, progress: float) -> Jo
     zeros = np.zeros(robot.NUM_JOINTS)
     return JointCommand(q=(1.0 - a) * q_start + a * q_goal, dq=zeros, kp=STARTUP_KP.copy(), kd=STARTUP_KD.copy(),
                         tau=zeros.copy())
+
+
+def smoothstep(x: float) -> float:
+    """3x² − 2x³ on [0, 1] (clipped): starts and ends at rest."""
+    x = float(np.clip(x, 0.0, 1.0))
+    return x * x * (3.0 - 2.0 * x)
+
+
+def blend_command(q_start: np.ndarray, q_goal: np.ndarray, kp: np.ndarray, kd: np.ndarray, progress: float,
+                  cfg: SafetyCfg) -> JointCommand:
+    """The hold → track blend at ``progress`` ∈ [0, 1]: targets from ``q_start`` to ``q_goal`` and
+    gains from the start-up ones to ``kp``/``kd`` (the policy's), both along a smoothstep, so the
+    targets and gains change continuously at both ends; targets clamped to the soft limits."""
+    a = smoothstep(progress)
+    lower, upper = cfg.soft_limits()
+    zeros = np.zeros(robot.NUM_JOINTS)
+    return JointCommand(q=np.clip((1.0 - a) * q_start + a * q_goal, lower, upper), dq=zeros,
+                        kp=(1.0 - a) * STARTUP_KP + a * kp, kd=(1.0 - a) * STARTUP_KD + a * kd, tau=zeros.copy())
 
 
 def damping_command(cfg: SafetyCfg) -> JointCommand:

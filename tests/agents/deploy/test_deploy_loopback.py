@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 
 from agents.deploy import crc
-from agents.deploy.log import DeployLog
+from agents.deploy.log import DeployLog, start_tilt_error_deg
 from agents.deploy.messages import JointCommand, low_cmd
 from agents.deploy.reference_policy import training_metadata
 from agents.deploy.safety import STARTUP_KD, STARTUP_KP, Stage
 from agents.procedural import SwaySpec, sway_reference
 from otr_gym import cli, robot
+from otr_gym.reference import Reference
 from tests.deploy_support import domain_id, feedback_policy, finish, nan_policy, otr
 
 pytestmark = pytest.mark.timeout(120)
@@ -169,3 +170,39 @@ def test_with_the_gantry_the_ramp_happens_hanging_and_the_robot_is_lowered_onto_
     assert hanging.min() > 0.79  # default stance 0.76 m + the gantry's 5 cm, less its sag
     assert 0.70 < standing.min() and standing.max() < 0.78
     assert stats["upright"], stats
+
+
+def _start_steps(log: DeployLog) -> tuple[float, float]:
+    """(largest per-cycle change of the joint targets, of the kp gains) from the end of the ramp
+    to one second into tracking."""
+    a = log.arrays
+    ramp_end = log.transitions()[1][0]  # RAMP → HOLD
+    track = a["t_s"][a["stage"] == Stage.TRACK]
+    window = (a["t_s"] >= ramp_end - 0.1) & (a["t_s"] <= track[0] + 1.0) & np.isfinite(a["command"][:, 0, 0])
+    command = a["command"][window]
+    return float(np.abs(np.diff(command[:, 0], axis=0)).max()), float(np.abs(np.diff(command[:, 2], axis=0)).max())
+
+
+@pytest.mark.parametrize("blend", ["1.0", "0"])
+def test_the_start_blends_into_the_clip_without_a_target_jump(tmp_path, meta, blend):
+    """A clip that starts away from the default pose (the sway from t = 2.5 s: squatting, arms
+    0.4 rad up): with the blend (the default) the targets reach its first frame over a second;
+    without it they jump there on the start cycle (measured 0.399 rad at the shoulders)."""
+    sway = sway_reference(SwaySpec(duration_s=8.0))
+    midway = Reference.from_qpos(sway.qpos()[125:], sway.fps).save(tmp_path / "midway.npz")
+    policy = feedback_policy(meta, tmp_path / "p.onnx")
+    rc, out, log, stats = sim2sim(tmp_path, policy, midway, domain_id(5 if blend == "0" else 6),
+                                  deploy_args=("--duration", "2", "--blend", blend), sim_s=60.0)
+    assert rc == 0, out
+    stages = [t[1:] for t in log.transitions()]
+    q_step, _ = _start_steps(log)
+    if blend == "0":
+        assert ("HOLD", "TRACK", "auto_start") in stages and q_step > 0.3, (stages, q_step)
+        return
+    assert ("HOLD", "BLEND", "auto_start") in stages and ("BLEND", "TRACK", "blend_done") in stages
+    times = {t[1:3]: t[0] for t in log.transitions()}
+    assert 0.95 <= times[("BLEND", "TRACK")] - times[("HOLD", "BLEND")] <= 1.1
+    assert q_step < 0.05, q_step  # the clip's own motion per 20 ms, no jump
+    assert start_tilt_error_deg(log) < 10.0  # the issue's bound on the first second of tracking
+    assert stats["upright"], stats
+    assert cli.main(["inspect", str(log.path)]) == 0

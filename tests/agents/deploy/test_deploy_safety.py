@@ -28,8 +28,12 @@ def spec(stand):
 
 
 def make(spec, stand, policy=None, **cfg):
-    safety = SafetyCfg(ramp_s=cfg.pop("ramp_s", 0.1), **{k: cfg.pop(k) for k in list(cfg) if k in
-                                                           ("stale_cycles", "tilt_limit_rad", "soft_limit_factor")})
+    """A controller; without the hold → track blend and the end hold unless asked (the tests of
+    the other stages start tracking on the start cycle and damp at the clip's end)."""
+    safety = SafetyCfg(ramp_s=cfg.pop("ramp_s", 0.1), blend_s=cfg.pop("blend_s", 0.0),
+                       end_hold_s=cfg.pop("end_hold_s", 0.0),
+                       **{k: cfg.pop(k) for k in list(cfg) if k in ("stale_cycles", "tilt_limit_rad",
+                                                                     "soft_limit_factor")})
     policy = policy or (lambda obs: np.zeros(29, np.float32))
     return Controller(spec, ObservationBuilder(spec, stand), policy, ControllerCfg(safety, **cfg))
 
@@ -192,3 +196,58 @@ def test_yaw_is_aligned_at_policy_start(spec, stand):
         assert c.builder.mpjpe_m(c.builder.tracking_state(state(quat=quat_from_yaw(np.float64(yaw))), 2,
                                                           np.zeros(29))) < 1e-3
     np.testing.assert_allclose(seen[0.0], seen[np.pi / 2], atol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def bent(tmp_path_factory):
+    """A clip whose every frame bends the knees and arms away from the default pose."""
+    from otr_gym.reference import Reference
+
+    qpos = np.tile(robot.default_qpos(), (50, 1))
+    qpos[:, 7:] += np.where(np.arange(29) % 3 == 0, 0.3, -0.1)
+    return Reference.from_qpos(qpos, 50.0).save(tmp_path_factory.mktemp("ref") / "bent.npz")
+
+
+def test_the_start_blends_targets_and_gains_from_the_hold_to_the_first_frame(spec, bent):
+    calls = []
+    c = make(spec, bent, blend_s=1.0, policy=lambda obs: (calls.append(1), np.zeros(29, np.float32))[1])
+    run(c, 10)
+    assert c.stage == Stage.HOLD
+    first = c.builder.reference_joint_pos(0)
+    lower, upper = robot.soft_joint_limits(0.9)
+    start = c.step(CycleInput(1.0, state(), keys=KEY_START))
+    assert start.stage == Stage.BLEND and start.frame == -1
+    np.testing.assert_allclose(start.command.q, robot.DEFAULT_JOINT_POS)
+    np.testing.assert_allclose(start.command.kp, STARTUP_KP)
+    half = c.step(CycleInput(1.5, state()))  # smoothstep(0.5) = 0.5: half way, targets and gains
+    np.testing.assert_allclose(half.command.q, np.clip((robot.DEFAULT_JOINT_POS + first) / 2, lower, upper))
+    np.testing.assert_allclose(half.command.kp, (STARTUP_KP + spec.kp) / 2)
+    np.testing.assert_allclose(half.command.kd, (STARTUP_KD + spec.kd) / 2)
+    late = c.step(CycleInput(1.9, state()))
+    late_q = robot.DEFAULT_JOINT_POS + 0.972 * (first - robot.DEFAULT_JOINT_POS)  # smoothstep(0.9)
+    np.testing.assert_allclose(late.command.q, np.clip(late_q, lower, upper))
+    assert not calls  # the policy is not run while blending
+    out = c.step(CycleInput(2.0, state()))
+    assert out.stage == Stage.TRACK and out.frame == 1 and calls
+    np.testing.assert_array_equal(out.command.kp, spec.kp)
+    assert [t.reason for t in c.stages.transitions] == ["state", "ramp_done", "operator", "blend_done"]
+
+
+def test_the_clip_end_holds_the_last_frame_then_damps(spec, bent):
+    c = make(spec, bent, auto_start=True, end_hold_s=0.5)
+    outs = run(c, 6 + c.builder.num_frames + 40)
+    end = [o for o in outs if o.stage == Stage.END]
+    assert len(end) == 25  # 0.5 s at 50 Hz
+    lower, upper = robot.soft_joint_limits(0.9)
+    for o in end:
+        np.testing.assert_allclose(o.command.q, np.clip(c.builder.reference_joint_pos(-1), lower, upper))
+        np.testing.assert_array_equal(o.command.kp, spec.kp)
+    assert c.stage == Stage.DAMP and c.stages.damp_reason == "clip_end"
+    assert [(t.source, t.target) for t in c.stages.transitions][-2:] == [(Stage.TRACK, Stage.END),
+                                                                        (Stage.END, Stage.DAMP)]
+
+
+@pytest.mark.parametrize("name", ["blend_s", "end_hold_s"])
+def test_a_negative_blend_or_end_hold_is_refused(name):
+    with pytest.raises(ValueError, match=name):
+        SafetyCfg(**{name: -0.5})
