@@ -183,15 +183,11 @@ class BoxTrackingTask(TrackingTask):
         return meta
 
 
-def make_box_task(reference: ReferenceSource | PreparedClips, num_envs: int, backend: str, device: str,
-                  cfg: BoxEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0,
-                  autoreset: bool = True) -> BoxTrackingTask:
-    """Load the references (failing fast on bad ones and on bad objects), build the objects,
-    the backend and the MDP."""
-    if not isinstance(cfg, BoxEnvCfg):
-        cfg = load_box_config(cfg)
-    if evaluation:
-        cfg = cfg.for_evaluation()
+def box_scene(reference: ReferenceSource | PreparedClips, cfg: BoxEnvCfg):
+    """(clips, terrain, objects, contact pairs, simulation model) of the box task: the clips
+    placed on their terrain, the objects as the environment collides them (grasp-fitted), the
+    hand–object and object–support sensor pairs and the compiled G1 + objects model. ``otr
+    sim-robot`` builds its objects from the same call."""
     refs, terrain = placed_clips(reference, cfg)
     if np.ptp(terrain.clip_origin_w, axis=0).any():
         static = sorted({t.name for r in refs for t in r.objects if is_static(t, cfg.objects)})
@@ -210,6 +206,19 @@ def make_box_task(reference: ReferenceSource | PreparedClips, num_envs: int, bac
         if fitted is not scene:
             scene = fitted
             model = build_sim_model(cfg.sim.contact_bodies, scene, pairs, condim=cfg.objects.condim, terrain=terrain)
+    return refs, terrain, scene, pairs, model
+
+
+def make_box_task(reference: ReferenceSource | PreparedClips, num_envs: int, backend: str, device: str,
+                  cfg: BoxEnvCfg | str | Path | None = None, evaluation: bool = False, seed: int = 0,
+                  autoreset: bool = True) -> BoxTrackingTask:
+    """Load the references (failing fast on bad ones and on bad objects), build the objects,
+    the backend and the MDP."""
+    if not isinstance(cfg, BoxEnvCfg):
+        cfg = load_box_config(cfg)
+    if evaluation:
+        cfg = cfg.for_evaluation()
+    refs, terrain, scene, pairs, model = box_scene(reference, cfg)
     motion = MotionLibrary.from_references(refs, cfg.command.tracked_bodies, cfg.command.fps)
     objects = ObjectLibrary.from_references(refs, scene, model, cfg.objects)
     physics = make_backend(backend, model, num_envs, device, cfg.sim.decimation, cfg.sim.contact_bodies,

@@ -22,6 +22,12 @@ keeps the torso upright, 5 cm above the ground, until ``--gantry-release`` secon
 first valid LowCmd (the controller's ramp happens hanging; lower it after the ramp, a robot
 landing mid-ramp falls); then it lowers the robot onto its feet over 1 s and lets go.
 
+Objects: given a reference with objects (``--reference``), the sim robot simulates them as the
+box environment builds them (``envs.box.box_scene``: the same collision shapes, grasp-fitted
+boxes, the nominal mass and friction of ``configs/env/box.yaml``, moving objects free and static
+ones fixed), each at its pose on the reference's first frame; ``--stats`` and ``--trace`` record
+their poses, and the stats say how far each moving object ended from the reference's last frame.
+
 The loop keeps real time on absolute deadlines; ``--stats`` writes what happened (commands
 accepted and dropped, real-time factor, step timing, whether the robot stayed upright).
 """
@@ -50,7 +56,7 @@ from agents.deploy.messages import (
 from agents.deploy.safety import STARTUP_KD
 from otr_gym import robot
 from otr_gym.io import save_npz, write_json
-from otr_gym.rotations import quat_from_yaw, quat_mul, quat_to_matrix
+from otr_gym.rotations import quat_apply, quat_error_angle, quat_from_yaw, quat_mul, quat_to_matrix
 
 UPRIGHT_MIN_PELVIS_Z = 0.5  # m: below this (or tilted past UPRIGHT_MAX_TILT) the robot has fallen
 UPRIGHT_MAX_TILT = np.radians(60.0)
@@ -73,12 +79,15 @@ class SimRobotCfg:
     yaw_rad: float = 0.0  # initial heading (the runner must align to it)
 
 
-def motorised_model(physics_hz: float, terrain=None) -> mujoco.MjModel:
-    """The G1 on the ground (and on ``terrain``, ``envs.terrain.SceneTerrain``, when given) with
-    its position actuators turned into torque motors."""
+def motorised_model(physics_hz: float, terrain=None, objects=None, condim: int = 3) -> mujoco.MjModel:
+    """The G1 on the ground (and on ``terrain``, ``envs.terrain.SceneTerrain``, and with
+    ``objects``, ``envs.objects.SceneObjects``, when given) with its position actuators turned
+    into torque motors."""
     from otr_gym.scene import SceneSpec, build_scene
 
     spec = build_scene(SceneSpec(ground=True, visual=False)).spec
+    if objects is not None:
+        objects.add_to(spec, visual=False, condim=condim)
     if terrain is not None:
         terrain.add_to(spec)
     model = spec.compile()
@@ -113,15 +122,28 @@ def quat_to_rpy(q: np.ndarray) -> np.ndarray:
 class SimRobot:
     """The physics and the message content, without the transport."""
 
-    def __init__(self, cfg: SimRobotCfg, initial_qpos: np.ndarray | None = None, terrain=None):
+    def __init__(self, cfg: SimRobotCfg, initial_qpos: np.ndarray | None = None, terrain=None, objects=None,
+                 condim: int = 3):
         self.cfg = cfg
-        self.model = motorised_model(cfg.physics_hz, terrain)
+        self.model = motorised_model(cfg.physics_hz, terrain, objects, condim)
         self.data = mujoco.MjData(self.model)
         qpos = robot.default_qpos() if initial_qpos is None else np.array(initial_qpos, dtype=np.float64)
-        qpos[3:7] = quat_mul(quat_from_yaw(np.float64(cfg.yaw_rad)), qpos[3:7])
+        yaw = quat_from_yaw(np.float64(cfg.yaw_rad))
+        root_xy = qpos[:2].copy()
+        qpos[3:7] = quat_mul(yaw, qpos[3:7])
         if cfg.gantry:
             qpos[2] += cfg.gantry_lift_m
         self.data.qpos[: 7 + robot.NUM_JOINTS] = qpos
+        # the moving objects (free joints after the robot's) at their first-frame poses, turned
+        # with the robot about its root by --yaw: the scene keeps its layout around the robot
+        self.moving = tuple(o for o in (objects.objects if objects is not None else ()) if not o.static)
+        self._object_qpos = [int(self.model.jnt_qposadr[self.model.body(o.body).jntadr[0]]) for o in self.moving]
+        #: name -> (7,) the reference's last-frame pose of a moving object (set by ``main``)
+        self.object_goals: dict[str, np.ndarray] = {}
+        for o, adr in zip(self.moving, self._object_qpos, strict=True):
+            offset = np.append(o.pos_w[:2] - root_xy, 0.0)
+            self.data.qpos[adr: adr + 3] = np.append(root_xy, 0.0) + quat_apply(yaw, offset) + [0.0, 0.0, o.pos_w[2]]
+            self.data.qpos[adr + 3: adr + 7] = quat_mul(yaw, o.quat_w)
         mujoco.mj_forward(self.model, self.data)
         self._acc = self.model.sensor("imu_lin_acc").adr[0]
         self._pelvis = self.model.body("pelvis").id
@@ -173,6 +195,10 @@ class SimRobot:
         w_tilt = np.array([w[0], w[1], 0.0])  # yaw free: damping the light torso's yaw explicitly is unstable
         torque = (1.0 - lowering) * (c.harness_stiffness * upright - c.harness_damping * w_tilt)
         return np.concatenate([f, torque])
+
+    def object_poses(self) -> np.ndarray:
+        """(M, 7) the moving objects' poses: position (m, world) and quaternion (wxyz)."""
+        return np.array([self.data.qpos[a: a + 7] for a in self._object_qpos]).reshape(-1, 7)
 
     def pelvis_height(self) -> float:
         return float(self.data.xpos[self._pelvis, 2])
@@ -230,7 +256,7 @@ class Bridge:
         self.stats = BridgeStats()
         self.command: JointCommand | None = None
         self._stop = False
-        self.trace: dict[str, list] = {"wall_s": [], "sim_s": [], "qpos": [], "kp_mean": []}
+        self.trace: dict[str, list] = {"wall_s": [], "sim_s": [], "qpos": [], "kp_mean": [], "object_pose": []}
         self.step_ns: list[int] = []
         self.lateness_ns: list[int] = []
         self.min_pelvis_z = sim.pelvis_height()
@@ -289,6 +315,7 @@ class Bridge:
                 self.trace["sim_s"].append(sim.time_s)
                 self.trace["qpos"].append(sim.data.qpos[: 7 + robot.NUM_JOINTS].copy())
                 self.trace["kp_mean"].append(float(self.command.kp.mean()) if self.command is not None else np.nan)
+                self.trace["object_pose"].append(sim.object_poses())
             self.step_ns.append(time.perf_counter_ns() - now)
             deadline += dt_ns
             behind = time.perf_counter_ns() - deadline
@@ -320,7 +347,27 @@ class Bridge:
             "min_pelvis_z_m": self.min_pelvis_z, "max_torso_tilt_rad": self.max_tilt,
             "upright": bool(self.min_pelvis_z > UPRIGHT_MIN_PELVIS_Z and self.max_tilt < UPRIGHT_MAX_TILT),
             "last_command_kp_mean": float(self.command.kp.mean()) if self.command is not None else None,
+            "objects": object_summary(self.sim, np.array(self.trace["object_pose"])) if self.sim.moving else {},
         }
+
+
+def object_summary(sim: SimRobot, poses: np.ndarray) -> dict:
+    """Per moving object: where it started and ended (m, wxyz), its lowest and highest centre
+    over the run (m) and, where ``sim.object_goals`` gives the reference's last-frame pose, the
+    distance (m) and angle (deg) of the end from it. ``poses`` (T, M, 7) the 50 Hz trace."""
+    out = {}
+    now = sim.object_poses()
+    for k, o in enumerate(sim.moving):
+        track = poses[:, k] if len(poses) else now[k][None]
+        entry = {"mass_kg": o.mass_kg, "friction": o.friction, "start": track[0].tolist(), "end": now[k].tolist(),
+                 "min_z_m": float(track[:, 2].min()), "max_z_m": float(track[:, 2].max())}
+        goal = sim.object_goals.get(o.name)
+        if goal is not None:
+            entry["goal"] = goal.tolist()
+            entry["end_error_m"] = float(np.linalg.norm(now[k, :3] - goal[:3]))
+            entry["end_error_deg"] = float(np.degrees(quat_error_angle(now[k, 3:], goal[3:])))
+        out[o.name] = entry
+    return out
 
 
 def initial_pose(reference: str | None) -> np.ndarray | None:
@@ -331,6 +378,32 @@ def initial_pose(reference: str | None) -> np.ndarray | None:
 
     ref = Reference.load(reference)
     return np.concatenate([ref.root_pos_w[0], ref.root_quat_w[0], ref.dof_pos[0]])
+
+
+def sim_objects(reference: str | None, object_meshes: list[str] | None = None):
+    """(``envs.objects.SceneObjects`` or None, contact dimension, name -> (7,) last-frame pose of
+    each moving object) of a reference's objects, built as the box environment builds them
+    (``envs.box.box_scene`` with ``configs/env/box.yaml``); ``object_meshes`` ("NAME=FILE")
+    give a mesh to an object the file does not embed (Holosoma's references)."""
+    if reference is None:
+        return None, 3, {}
+    from envs.box import box_scene
+    from envs.config import load_box_config
+    from otr_gym.reference import Reference
+
+    if not Reference.load(reference).objects:
+        return None, 3, {}
+    overrides = {}
+    for item in object_meshes or ():
+        name, sep, mesh = item.partition("=")
+        if not sep or not name or not mesh:
+            raise ValueError(f"--object-mesh {item!r}: expected NAME=FILE")
+        overrides[name] = {"mesh": mesh}
+    cfg = load_box_config(None, {"objects": {"overrides": overrides}} if overrides else None)
+    refs, _, scene, _, _ = box_scene(reference, cfg)
+    goals = {t.name: np.concatenate([t.pos_w[-1], t.quat_w[-1]]) for t in refs[0].objects
+             if any(o.name == t.name for o in scene.moving)}
+    return scene, cfg.objects.condim, goals
 
 
 def sim_terrain(terrain: str, reference: str | None):
@@ -360,7 +433,11 @@ def sim_terrain(terrain: str, reference: str | None):
 def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interface", default="lo", help="network interface for DDS (default lo: sim2sim on one machine)")
     p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0; default: %(default)s)")
-    p.add_argument("--reference", default=None, help="start on this reference's first frame (default: default pose)")
+    p.add_argument("--reference", default=None, help="start on this reference's first frame, its objects too "
+                   "(default: default pose, no objects)")
+    p.add_argument("--no-objects", action="store_true", help="do not simulate the reference's objects")
+    p.add_argument("--object-mesh", action="append", default=None, metavar="NAME=FILE",
+                   help="mesh of an object the reference does not embed (e.g. Holosoma's: largebox=largebox.obj)")
     p.add_argument("--terrain", default=None, help="simulate this terrain: a mesh file (m, the reference's world "
                    "frame), or a run folder (the terrain its config gives --reference's clip)")
     p.add_argument("--gantry", action="store_true", help="hang the robot in a virtual gantry until --gantry-release")
@@ -392,9 +469,11 @@ def main(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
+        objects, condim, goals = (None, 3, {}) if args.no_objects else sim_objects(args.reference, args.object_mesh)
         sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
                                    yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference),
-                       None if args.terrain is None else sim_terrain(args.terrain, args.reference))
+                       None if args.terrain is None else sim_terrain(args.terrain, args.reference), objects, condim)
+        sim.object_goals = goals if not args.yaw else {}  # a turned scene has no goal in the reference's frame
         bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after, args.idle_exit)
         if args.rt_priority:
             from agents.deploy.runner import set_realtime_priority
@@ -406,7 +485,9 @@ def main(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGTERM, bridge.stop)
     signal.signal(signal.SIGINT, bridge.stop)
     print(f"sim-robot: G1 on domain {args.domain_id}, interface {args.interface}, {args.physics_hz:g} Hz physics"
-          f"{', gantry' if args.gantry else ', frozen until the first LowCmd'}", flush=True)
+          f"{', gantry' if args.gantry else ', frozen until the first LowCmd'}"
+          + "".join(f", {o.name} ({o.method}, {o.mass_kg:g} kg, friction {o.friction:g})" for o in sim.moving),
+          flush=True)
     bridge.run(args.duration)
     summary = bridge.summary()
     if args.stats:

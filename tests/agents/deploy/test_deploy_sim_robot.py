@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from agents.deploy import crc
 from agents.deploy.messages import JointCommand, robot_state
@@ -64,3 +65,46 @@ def test_the_gantry_holds_a_limp_robot_then_lowers_it():
     for _ in range(1000):  # lowered over 1 s, then let go with no torque: it sinks
         sim.step(None)
     assert sim.pelvis_height() < 0.5
+
+
+def test_the_reference_objects_are_simulated_as_the_box_environment_builds_them(box_reference):
+    """The generated box clip: a 20 cm box on the floor 0.6 m ahead (it ends on a table)."""
+    from agents.deploy.sim_robot import initial_pose, object_summary, sim_objects
+    from envs.box import make_box_task
+    from otr_gym.reference import Reference
+
+    scene, condim, goals = sim_objects(str(box_reference))
+    sim = SimRobot(SimRobotCfg(), initial_pose(str(box_reference)), None, scene, condim)
+    assert [o.name for o in sim.moving] == ["box"]
+    (table,) = [o for o in scene.objects if o.static]
+    assert table.name == "table" and sim.model.body(table.body).jntnum[0] == 0  # fixed
+    sim.object_goals = goals
+    ref = Reference.load(box_reference)
+    np.testing.assert_allclose(sim.object_poses()[0, :3], ref.objects[0].pos_w[0], atol=1e-9)
+    # the same collision geometry, mass and friction as the environment's model
+    env = make_box_task(str(box_reference), 1, "mujoco", "cpu", evaluation=True).backend.model
+    box = scene.moving[0].body
+    for m in (sim.model, env):
+        assert m.body(box).geomnum[0] == env.body(box).geomnum[0]
+    np.testing.assert_allclose(sim.model.body(box).mass, env.body(box).mass)
+    g_sim, g_env = sim.model.body(box).geomadr[0], env.body(box).geomadr[0]
+    np.testing.assert_allclose(sim.model.geom_size[g_sim], env.geom_size[g_env])
+    np.testing.assert_allclose(sim.model.geom_friction[g_sim], env.geom_friction[g_env])
+    trace = []
+    for k in range(500):  # 1 s holding the default pose: the box rests on the floor
+        sim.step(hold())
+        if k % 10 == 0:
+            trace.append(sim.object_poses())
+    assert abs(sim.object_poses()[0, 2] - ref.objects[0].pos_w[0, 2]) < 0.003
+    np.testing.assert_allclose(goals["box"][:3], ref.objects[0].pos_w[-1])
+    summary = object_summary(sim, np.array(trace))["box"]
+    end = np.linalg.norm(ref.objects[0].pos_w[-1] - sim.object_poses()[0, :3])
+    assert summary["end_error_m"] == pytest.approx(end) and end > 0.5  # on the floor, not on the table
+    assert summary["mass_kg"] == scene.moving[0].mass_kg
+
+
+def test_sim_robot_refuses_a_malformed_object_mesh_option(box_reference):
+    from agents.deploy.sim_robot import sim_objects
+
+    with pytest.raises(ValueError, match="NAME=FILE"):
+        sim_objects(str(box_reference), ["box"])
