@@ -164,8 +164,18 @@ def policy_only_copies(run_dir: str | Path, every: int, out_dir: str | Path) -> 
 
 
 def run_config(run_dir: str | Path) -> dict:
-    """The ``config.yaml`` of a run: {"train": …, "reference": …, "device": …, …}."""
-    return read_yaml(Path(run_dir) / CONFIG_FILE)
+    """The ``config.yaml`` of a run: {"train": …, "reference": …, "device": …, …}. A box run
+    records its actor (``env.observations.actor`` or ``policy``); one that records neither was
+    trained before the perception-free actor became the default, with the ``mocap`` actor."""
+    config = read_yaml(Path(run_dir) / CONFIG_FILE)
+    train = config.get("train") or {}
+    if train.get("task") == "OTR-G1-BoxTrack-v0":
+        observations = ((train.get("env") or {}).get("observations") or {})
+        if "actor" not in observations and "policy" not in observations:
+            env = dict(train.get("env") or {})
+            env["observations"] = {**observations, "actor": "mocap"}
+            config["train"] = {**train, "env": env}
+    return config
 
 
 def configure_parser(parser: argparse.ArgumentParser) -> None:

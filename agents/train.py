@@ -53,6 +53,8 @@ from agents.runner import TrackingRunner
 from agents.stopping import StopConditions, TrainingStopped
 from agents.vecenv import RslRlVecEnv, make_vec_env
 from envs.config import TrackEnvCfg, load_env_config
+from envs.config.box import BOX_DEFAULT_ACTOR
+from envs.config.tasks import BOX_TASK
 from otr_gym.config import merge
 from otr_gym.reference import InvalidReferenceError
 
@@ -141,6 +143,11 @@ def _setup(args: argparse.Namespace) -> TrainSetup:
         cfg = load_train_config(args.config, _overrides(args))
         reference = args.reference
         run_dir = None
+    if cfg.task == BOX_TASK and not {"actor", "policy"} & set((cfg.env or {}).get("observations") or {}):
+        # the run records its actor by name, so that a later change of the default does not
+        # change what its checkpoints are evaluated, played and resumed with
+        observations = {**((cfg.env or {}).get("observations") or {}), "actor": BOX_DEFAULT_ACTOR}
+        cfg = dataclasses.replace(cfg, env={**(cfg.env or {}), "observations": observations})
     env_cfg = load_env_config(cfg.task, overrides=cfg.env or None)
     library = prepare_library(reference, env_cfg.command, report=int(os.environ.get("RANK", "0")) == 0)
     cfg = dataclasses.replace(cfg, env=with_terrain(cfg.env, library))

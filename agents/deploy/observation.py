@@ -40,7 +40,7 @@ from agents.deploy.messages import RobotState
 from envs.mdp import observations as obs_terms
 from envs.mdp.metrics import mpjpe_root_relative
 from envs.mdp.motion import MotionLibrary
-from envs.mdp.state import TrackingState
+from envs.mdp.state import ObjectState, TrackingState
 from otr_gym import robot
 from otr_gym.rotations import quat_apply, quat_conj, quat_mul, quat_to_matrix, quat_yaw
 from otr_gym.scene import robot_model
@@ -49,7 +49,17 @@ from otr_gym.scene import robot_model
 UNOBSERVABLE_TERMS = {
     "anchor_pos_b": "the robot's world position",
     "base_lin_vel_b": "the pelvis linear velocity",
+    "object_pos_b": "the object's pose (motion capture)",
+    "object_ori_b": "the object's pose (motion capture)",
+    "object_lin_vel_b": "the object's velocity (motion capture)",
+    "object_ang_vel_b": "the object's velocity (motion capture)",
+    "object_pos_error_b": "the object's pose (motion capture)",
+    "object_contact_forces": "the hands' and the object's contact forces",
+    "static_object_pos_b": "the robot's world position (motion capture)",
+    "static_object_ori_b": "the robot's world heading (motion capture)",
 }
+#: Box-task terms that read the reference only: a runner computes them from the clip.
+REFERENCE_OBJECT_TERMS = ("object_command", "contact_schedule")
 
 
 class PolicySpecError(ValueError):
@@ -98,7 +108,8 @@ class PolicySpec:
             if name in UNOBSERVABLE_TERMS:
                 raise PolicySpecError(f"{source}: observation term '{name}' needs {UNOBSERVABLE_TERMS[name]}, "
                                       "which the G1's low-level state does not give; deploy a policy trained "
-                                      "without it (the default 154-dim actor)")
+                                      "without it (the default actors: OTR-G1-Track-v0's 154 terms, "
+                                      "OTR-G1-BoxTrack-v0's perception_free)")
         fps = float(meta["fps"])
         return cls(source=source, default_joint_pos=arrays["default_joint_pos"], kp=arrays["joint_stiffness"],
                    kd=arrays["joint_damping"], action_scale=arrays["action_scale"],
@@ -142,6 +153,24 @@ def torso_tilt_rad(anchor_quat_wxyz: np.ndarray) -> float:
     return float(np.arccos(np.clip(quat_to_matrix(anchor_quat_wxyz)[2, 2], -1.0, 1.0)))
 
 
+def reference_objects(reference, fps: float, num_frames: int):
+    """The box task's ``ObjectLibrary`` of one clip (the reference's object track, its contact
+    gates), built by the training code from ``configs/env/box.yaml``."""
+    from envs.box import box_scene
+    from envs.config import load_box_config
+    from envs.mdp.objects import ObjectLibrary
+
+    cfg = load_box_config()
+    if abs(cfg.command.fps - fps) > 1e-6:
+        raise PolicySpecError(f"{reference}: the policy runs at {fps:g} Hz, the box task's objects at "
+                              f"{cfg.command.fps:g} Hz")
+    refs, _, scene, _, model = box_scene(reference, cfg)
+    library = ObjectLibrary.from_references(refs, scene, model, cfg.objects)
+    if library.pos_w.shape[0] != num_frames:
+        raise PolicySpecError(f"{reference}: {library.pos_w.shape[0]} object frames for {num_frames} robot frames")
+    return library
+
+
 class ObservationBuilder:
     """Observation vectors for a ``PolicySpec`` tracking one reference clip (see module doc)."""
 
@@ -161,6 +190,8 @@ class ObservationBuilder:
         if unknown:
             raise PolicySpecError(f"{spec.source}: unknown observation terms {unknown} (not in envs.mdp.observations)")
         self._default = torch.as_tensor(spec.default_joint_pos, dtype=torch.float32)[None]
+        self.objects = (reference_objects(reference, spec.fps, self.num_frames)
+                        if any(n in REFERENCE_OBJECT_TERMS for n, _ in spec.observation_layout) else None)
         self.align(np.array([1.0, 0.0, 0.0, 0.0]))
         self._check_terms()
 
@@ -174,6 +205,12 @@ class ObservationBuilder:
         self.ref_body_quat_w = quat_mul(d.expand_as(m.body_quat_w), m.body_quat_w)
         self.ref_body_lin_vel_w = quat_apply(d.expand(*m.body_lin_vel_w.shape[:-1], 4), m.body_lin_vel_w)
         self.ref_body_ang_vel_w = quat_apply(d.expand(*m.body_ang_vel_w.shape[:-1], 4), m.body_ang_vel_w)
+        if self.objects is not None:
+            o = self.objects
+            self.ref_object_pos_w = quat_apply(d.expand(*o.pos_w.shape[:-1], 4), o.pos_w)
+            self.ref_object_quat_w = quat_mul(d.expand_as(o.quat_w), o.quat_w)
+            self.ref_object_lin_vel_w = quat_apply(d.expand(*o.lin_vel_w.shape[:-1], 4), o.lin_vel_w)
+            self.ref_object_ang_vel_w = quat_apply(d.expand(*o.ang_vel_w.shape[:-1], 4), o.ang_vel_w)
 
     def heading_alignment(self, state: RobotState) -> np.ndarray:
         """Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) (wxyz) for the robot standing in ``state``."""
@@ -215,8 +252,28 @@ class ObservationBuilder:
             ref_body_ang_vel_w=self.ref_body_ang_vel_w[frame][None],
             ref_body_pos_aligned_w=unknown, ref_body_quat_aligned_w=torch.full((1, K, 4), float("nan")),
             action=t(action), last_action=torch.full((1, robot.NUM_JOINTS), float("nan")),
-            default_joint_pos=self._default,
+            default_joint_pos=self._default, objects=self._object_state(frame),
         )
+
+    def _object_state(self, frame: int) -> ObjectState | None:
+        """The box task's object state at ``frame``: the reference's part (aligned, gates); what
+        a robot would measure of the objects (poses, velocities, forces) is NaN."""
+        o = self.objects
+        if o is None:
+            return None
+        M, H, S = o.pos_w.shape[1], len(o.hand_bodies), len(o.support_names)
+
+        def nan(*shape: int) -> torch.Tensor:
+            return torch.full((1, *shape), float("nan"))
+
+        return ObjectState(
+            names=o.names, support_names=o.support_names, pos_w=nan(M, 3), quat_w=nan(M, 4), lin_vel_w=nan(M, 3),
+            ang_vel_w=nan(M, 3), ref_pos_w=self.ref_object_pos_w[frame][None],
+            ref_quat_w=self.ref_object_quat_w[frame][None], ref_lin_vel_w=self.ref_object_lin_vel_w[frame][None],
+            ref_ang_vel_w=self.ref_object_ang_vel_w[frame][None], hand_pos_w=nan(H, 3), hand_target_w=nan(H, M, 3),
+            hand_gate=o.hand_gate[frame][None], hand_force_n=nan(H, M), support_gate=o.support_gate[frame][None],
+            support_force_n=nan(M, S), static_pos_w=torch.full_like(o.static_pos_w, float("nan")),
+            static_quat_w=torch.full_like(o.static_quat_w, float("nan")))
 
     def observation(self, s: TrackingState) -> np.ndarray:
         """(D,) float32: the layout's terms in order, clipped to ±observation_clip."""

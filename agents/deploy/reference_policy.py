@@ -30,16 +30,25 @@ from otr_gym import robot
 from otr_gym.io import atomic_path
 
 
-def training_metadata(reference) -> dict:
-    """The metadata ``otr export`` would write for a policy trained on the default env
-    (without the checkpoint fields), taken from the env itself."""
-    from envs.tracking import make_task
+def training_metadata(reference, task_id: str = "OTR-G1-Track-v0", env: dict | None = None) -> dict:
+    """The metadata ``otr export`` would write for a policy trained on ``task_id``'s env (its
+    default config with the ``env`` overrides; without the checkpoint fields), taken from the
+    env itself."""
+    from envs.config import BOX_TASK, load_env_config
 
-    task = make_task(reference, 1, "mujoco", "cpu", evaluation=True)
+    cfg = load_env_config(task_id, overrides=env)
+    if task_id == BOX_TASK:
+        from envs.box import make_box_task
+
+        task = make_box_task(reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True)
+    else:
+        from envs.tracking import make_task
+
+        task = make_task(reference, 1, "mujoco", "cpu", cfg=cfg, evaluation=True)
     meta = task.policy_metadata()
     names, dims = meta.pop("observation_names")["policy"], meta.pop("observation_dims")["policy"]
     starts = np.cumsum([0, *dims[:-1]]).tolist()
-    return {"format": FORMAT, "task": "OTR-G1-Track-v0", **meta, "observation_group": "policy",
+    return {"format": FORMAT, "task": task_id, **meta, "observation_group": "policy",
             "observation_dim": int(sum(dims)),
             "observation_layout": [{"name": n, "dim": d, "start": s}
                                    for n, d, s in zip(names, dims, starts, strict=True)],

@@ -123,17 +123,31 @@ def _box_command() -> CommandCfg:
 
 
 def _box_policy_obs() -> list[ObsTermCfg]:
-    # §3 actor with state estimation (160) + FK actor additions (object pose n 0.02/0.05, supports)
-    # + the reference's object command and contact schedule. The box is tracked in the world, so
-    # the actor is told where its reference is: with the 154 actor (HS) the seed-4 policies ran
-    # 6-9 cm ahead of their reference and ended at 7.1-8.2 cm of box error; with this one it ran
-    # 0.2 cm ahead and ended at 4.7 cm after 20 minutes (docs/results/box.md). The object terms
-    # need a world pose measured anyway (motion capture), so the robot's own world position costs
-    # a deployment nothing more.
+    # The perception-free actor (the default): what a G1 measures itself (§3's 154 actor: joint
+    # encoders, the IMU's orientation and angular velocity, the last action) plus the reference:
+    # the robot's (command) and the object's in the reference anchor frame (object_command), and
+    # the contact schedule. The object's pose and the robot's world position go to the critic only.
+    return policy_obs_terms(state_estimation=False) + [ObsTermCfg("object_command", 0.0),
+                                                       ObsTermCfg("contact_schedule", 0.0)]
+
+
+def _box_mocap_policy_obs() -> list[ObsTermCfg]:
+    # The motion-capture actor (``observations.actor: mocap``, the default until 2026-12-07): §3's
+    # actor with state estimation (160) + FK actor additions (object pose n 0.02/0.05, supports) +
+    # the object command and contact schedule. Told where its reference is in the world, the
+    # seed-4 policies ran 0.2 cm ahead of it and ended at 4.7 cm of box error after 20 minutes
+    # (with the 154 actor and the object pose: 6-9 cm ahead, 7.1-8.2 cm; docs/results/box.md).
+    # Deployment needs the object's pose and the robot's world position (motion capture).
     return policy_obs_terms(state_estimation=True) + [
         ObsTermCfg("object_pos_b", 0.02), ObsTermCfg("object_ori_b", 0.05), ObsTermCfg("object_command", 0.0),
         ObsTermCfg("contact_schedule", 0.0), ObsTermCfg("static_object_pos_b", 0.02),
         ObsTermCfg("static_object_ori_b", 0.05)]
+
+
+#: The box task's named actors: ``observations.actor`` in configs/env/box.yaml picks one (an
+#: explicit ``observations.policy`` list wins over it).
+BOX_ACTORS = {"perception_free": _box_policy_obs, "mocap": _box_mocap_policy_obs}
+BOX_DEFAULT_ACTOR = "perception_free"  # configs/env/box.yaml's observations.actor; BoxEnvCfg's policy
 
 
 def _box_critic_obs() -> list[ObsTermCfg]:
@@ -185,7 +199,17 @@ class BoxEnvCfg(TrackEnvCfg):
 
 
 def load_box_config(path: str | Path | None = None, overrides: dict | None = None) -> BoxEnvCfg:
-    """As ``load_track_config`` for OTR-G1-BoxTrack-v0 (default ``configs/env/box.yaml``)."""
+    """As ``load_track_config`` for OTR-G1-BoxTrack-v0 (default ``configs/env/box.yaml``);
+    ``observations.actor`` names one of ``BOX_ACTORS`` as the policy's terms unless
+    ``observations.policy`` lists them."""
     data = merge(load_yaml_mapping(path, BOX_CONFIG, "environment"), overrides)
+    observations = dict(data.get("observations") or {})
+    actor = observations.pop("actor", None)
+    if actor is not None:
+        if actor not in BOX_ACTORS:
+            raise ValueError(f"{path or BOX_CONFIG}: observations.actor '{actor}' is none of {sorted(BOX_ACTORS)}")
+        if "policy" not in (overrides or {}).get("observations", {}):
+            observations["policy"] = [{"fn": t.fn, "noise": t.noise} for t in BOX_ACTORS[actor]()]
+        data = {**data, "observations": observations}
     return from_dict(BoxEnvCfg, data, "box")
 

@@ -56,7 +56,18 @@ def test_box_training_logs_object_terms_and_keeps_the_ablation_in_the_run(box_ru
     assert 0.0 <= scalars["metric/object_pos_error_m"][1][0] < 0.5
     assert "termination/object_pos" in scalars and "metric/success_rate" in scalars
     spec = runs.read_env_spec(box_run)
-    assert spec["observation_dims"]["policy"] == 160 + 37  # §3 actor with state estimation + box and table terms
+    assert spec["observation_dims"]["policy"] == 154 + 15 + 4  # the perception-free actor: §3's 154 + the box's
+    assert cfg.env["observations"]["actor"] == "perception_free"  # recorded by name with the run
+
+
+def test_a_box_run_from_before_the_perception_free_default_is_read_with_its_mocap_actor(tmp_path):
+    old = {"train": {"task": "OTR-G1-BoxTrack-v0", "env": {"rewards": {"object_lin_vel": {"weight": 0}}}}}
+    runs.write_yaml(tmp_path / runs.CONFIG_FILE, old)
+    env = runs.run_config(tmp_path)["train"]["env"]
+    assert env["observations"] == {"actor": "mocap"} and env["rewards"] == old["train"]["env"]["rewards"]
+    track = {"train": {"task": "OTR-G1-Track-v0", "env": {}}}
+    runs.write_yaml(tmp_path / runs.CONFIG_FILE, track)
+    assert runs.run_config(tmp_path) == track
 
 
 def test_box_evaluation_reports_object_errors_and_export_names_the_object_observations(box_run, box_reference,
@@ -70,10 +81,9 @@ def test_box_evaluation_reports_object_errors_and_export_names_the_object_observ
     assert final["support_contact"]["ground"]["contact_rate"] == 1.0
     meta = read_metadata(export_onnx(box_run, tmp_path / "policy.onnx"))
     names = [t["name"] for t in meta["observation_layout"]]
-    assert names[:2] == ["command", "anchor_pos_b"] and "base_lin_vel_b" in names
-    assert names[8:] == ["object_pos_b", "object_ori_b", "object_command", "contact_schedule",
-                         "static_object_pos_b", "static_object_ori_b"]
-    assert meta["observation_dim"] == 197 and meta["objects"]["moving"] == ["box"]
+    assert names[:2] == ["command", "anchor_ori_b"] and "base_lin_vel_b" not in names
+    assert names[6:] == ["object_command", "contact_schedule"]
+    assert meta["observation_dim"] == 173 and meta["objects"]["moving"] == ["box"]
     assert meta["objects"]["supports"] == ["ground", "table"]
 
 

@@ -49,14 +49,26 @@ def test_box_yaml_lists_exactly_the_dataclass_defaults():
     assert load_box_config(BOX_CONFIG) == BoxEnvCfg()
 
 
-def test_the_actor_knows_its_world_position_and_the_older_actor_is_one_sets_file_away():
-    sensed = ("anchor_pos_b", "base_lin_vel_b")
+def test_the_default_actor_observes_nothing_a_g1_does_not_measure_and_mocap_is_one_name_away():
+    from agents.deploy.observation import UNOBSERVABLE_TERMS
+
     default = [(t.fn, t.noise) for t in BoxEnvCfg().observations.policy]
-    assert ("anchor_pos_b", 0.25) in default and ("base_lin_vel_b", 0.5) in default  # §3 MJ default actor
+    assert not [fn for fn, _ in default if fn in UNOBSERVABLE_TERMS]
+    assert [fn for fn, _ in default][-2:] == ["object_command", "contact_schedule"]
+    # the motion-capture actor, the default before 2026-12-07: §3 MJ's actor with state estimation
+    # and the object's pose
+    mocap = [(t.fn, t.noise) for t in load_box_config(None, {"observations": {"actor": "mocap"}}).observations.policy]
+    assert ("anchor_pos_b", 0.25) in mocap and ("base_lin_vel_b", 0.5) in mocap and ("object_pos_b", 0.02) in mocap
     # benchmarks/box_no_state_estimation.sets, passed as SETS to train_box.sh, is the 154-dim actor
-    # (§3 HS) of the box runs before 2026-11-29: the same terms and noise, less the two above
+    # (§3 HS) of the box runs before 2026-11-29: the mocap actor less the robot's world position
     older = load_box_config(BOX_CONFIG, benchmark_sets("box_no_state_estimation.sets")["env"])
-    assert [(t.fn, t.noise) for t in older.observations.policy] == [t for t in default if t[0] not in sensed]
+    assert [(t.fn, t.noise) for t in older.observations.policy] == [
+        t for t in mocap if t[0] not in ("anchor_pos_b", "base_lin_vel_b")]
+    # the perception-free actor is that one less the object's and the table's pose
+    assert default == [(t.fn, t.noise) for t in older.observations.policy
+                       if not t.fn.startswith(("object_pos", "object_ori", "static_"))]
+    with pytest.raises(ValueError, match="observations.actor 'lidar' is none of"):
+        load_box_config(None, {"observations": {"actor": "lidar"}})
 
 
 def test_a_reference_without_objects_is_refused_naming_the_file(walking_reference):
@@ -354,9 +366,10 @@ def test_success_is_the_clip_s_last_frame_reached(eval_task):
 
 def test_observations_name_the_object_terms_and_their_sizes(eval_task):
     layout = dict(eval_task.obs_layout["policy"])
-    assert layout["object_pos_b"] == 3 and layout["object_ori_b"] == 6 and layout["object_command"] == 15
-    assert layout["contact_schedule"] == 2 + 2 and layout["static_object_pos_b"] == 3
-    assert eval_task.obs_dims["policy"] == 160 + 3 + 6 + 15 + 4 + 3 + 6
+    assert layout["object_command"] == 15 and layout["contact_schedule"] == 2 + 2
+    assert eval_task.obs_dims["policy"] == 154 + 15 + 4  # the perception-free actor
+    critic = dict(eval_task.obs_layout["critic"])
+    assert critic["object_pos_b"] == 3 and critic["object_ori_b"] == 6 and critic["static_object_pos_b"] == 3
     meta = eval_task.policy_metadata()
     assert "object_command" in meta["observation_names"]["policy"]
     assert meta["objects"]["moving"] == ["box"] and meta["objects"]["static"] == ["table"]

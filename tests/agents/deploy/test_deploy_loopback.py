@@ -12,12 +12,12 @@ import pytest
 from agents.deploy import crc
 from agents.deploy.log import DeployLog, start_tilt_error_deg
 from agents.deploy.messages import JointCommand, low_cmd
-from agents.deploy.reference_policy import training_metadata
+from agents.deploy.reference_policy import reference_policy_model, training_metadata
 from agents.deploy.safety import STARTUP_KD, STARTUP_KP, Stage
 from agents.procedural import SwaySpec, sway_reference
 from otr_gym import cli, robot
 from otr_gym.reference import Reference
-from tests.deploy_support import domain_id, feedback_policy, finish, nan_policy, otr
+from tests.deploy_support import domain_id, feedback_policy, finish, nan_policy, otr, save_with_metadata
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -206,3 +206,25 @@ def test_the_start_blends_into_the_clip_without_a_target_jump(tmp_path, meta, bl
     assert start_tilt_error_deg(log) < 10.0  # the issue's bound on the first second of tracking
     assert stats["upright"], stats
     assert cli.main(["inspect", str(log.path)]) == 0
+
+
+def test_a_box_actor_runs_over_dds_against_a_sim_robot_that_simulates_the_box(tmp_path, box_reference):
+    """The reference player with OTR-G1-BoxTrack-v0's default (perception-free) observation layout:
+    the runner builds the object command and contact schedule from the clip, the sim robot
+    simulates the clip's box (on the floor) and table; the box stays where it is (the robot stands
+    still), which the stats report against the reference's end (on the table)."""
+    meta = training_metadata(box_reference, "OTR-G1-BoxTrack-v0")
+    meta["joint_stiffness"], meta["joint_damping"] = STARTUP_KP.tolist(), STARTUP_KD.tolist()
+    assert [t["name"] for t in meta["observation_layout"]][-2:] == ["object_command", "contact_schedule"]
+    policy = save_with_metadata(reference_policy_model(meta), meta, tmp_path / "box.onnx")
+    rc, out, log, stats = sim2sim(tmp_path, policy, box_reference, domain_id(7), sim_s=60.0,
+                                  deploy_args=("--blend", "0.2", "--end-hold", "0.2"))
+    assert rc == 0, out
+    stages = [t[1:] for t in log.transitions()]
+    assert ("TRACK", "END", "clip_end") in stages and stages[-1] == ("END", "DAMP", "clip_end")
+    frames = log.arrays["frame"][log.arrays["stage"] == Stage.TRACK]
+    assert frames.max() == 150  # the whole clip
+    box = stats["objects"]["box"]
+    np.testing.assert_allclose(box["start"][:3], [0.6, 0.0, 0.1], atol=1e-6)
+    assert abs(box["end"][2] - 0.1) < 0.01 and box["end_error_m"] > 0.5  # on the floor, not on the table
+    assert stats["upright"], stats

@@ -73,3 +73,44 @@ def test_reference_policy_outputs_the_reference_joint_targets(tmp_path, walking_
     action = ort.InferenceSession(str(path)).run(["actions"], {"obs": obs[None]})[0][0]
     q_ref = builder.motion.joint_pos[40].numpy()
     np.testing.assert_allclose(spec.default_joint_pos + spec.action_scale * action, q_ref, atol=1e-5)
+
+
+def test_the_perception_free_box_actor_is_rebuilt_from_the_lowstate_and_the_reference(box_reference):
+    """OTR-G1-BoxTrack-v0's default actor: the robot's own sensors, the reference's object
+    command and contact schedule; the runner's observation equals the training env's."""
+    from envs.box import make_box_task
+
+    meta = training_metadata(box_reference, "OTR-G1-BoxTrack-v0")
+    names = [t["name"] for t in meta["observation_layout"]]
+    assert names[-2:] == ["object_command", "contact_schedule"] and "object_pos_b" not in names
+    task = make_box_task(box_reference, 1, "mujoco", "cpu", evaluation=True)
+    task.reset()
+    builder = ObservationBuilder(PolicySpec.from_metadata(meta, "meta"), box_reference)
+    rng = np.random.default_rng(0)
+    gates = []
+    for step in range(60):  # the box on the floor, then lifted off it (its reference leaves the floor)
+        obs = task.step(torch.as_tensor(rng.normal(0, 0.02, (1, 29)), dtype=torch.float32))[0] if step else \
+            task.observations(task.state)
+        qpos, qvel = task.backend.qpos[0].numpy(), task.backend.qvel[0].numpy()
+        lowstate = RobotState(joint_pos=qpos[7:36], joint_vel=qvel[6:35], quat_wxyz=qpos[3:7], gyro_b=qvel[3:6],
+                              accel_b=np.zeros(3), tick_ms=0, mode_machine=5, remote_keys=0)
+        frame = int(task.command.frame[0])
+        s = builder.tracking_state(lowstate, frame, task.action[0].numpy())
+        np.testing.assert_allclose(builder.observation(s), obs["policy"][0].numpy(), atol=2e-5,
+                                   err_msg=f"step {step}, frame {frame}")
+        gates.append(float(s.objects.support_gate.max()))
+    assert max(gates) == 1.0 and min(gates) == 0.0  # compared with the floor window open and closed
+    # the hand windows come later in the clip (frames 60-99) than a robot standing still keeps the
+    # box within the object termination: the runner's gates are the env's on every frame
+    torch.testing.assert_close(builder.objects.hand_gate, task.objects.hand_gate)
+    assert builder.objects.hand_gate.max() == 1.0
+
+
+def test_a_box_actor_that_observes_the_object_pose_is_refused_by_name(box_reference):
+    meta = training_metadata(box_reference, "OTR-G1-BoxTrack-v0", {"observations": {"actor": "mocap"}})
+    with pytest.raises(PolicySpecError, match="anchor_pos_b.*world position"):
+        PolicySpec.from_metadata(meta, "box.onnx")
+    without_anchor = dict(meta, observation_layout=[t for t in meta["observation_layout"]
+                                                    if t["name"] not in ("anchor_pos_b", "base_lin_vel_b")])
+    with pytest.raises(PolicySpecError, match="object_pos_b.*object's pose"):
+        PolicySpec.from_metadata(without_anchor, "box.onnx")
