@@ -101,7 +101,8 @@ def test_cdr_bytes_equal_the_sdk_serialisation():
 
 
 def test_the_one_call_lowstate_serialiser_writes_cyclonedds_bytes():
-    """LowState_.serialize packs the sample in one struct call (it is published at 500 Hz);
+    """LowState_.serialize packs the sample in one struct call (it is published at 500 Hz) and
+    LowState_.deserialize unpacks it in one (the runner reads one every 20 ms cycle);
     random values over every field's range give CycloneDDS's own bytes, and the encodings it
     does not cover (XCDR2, big endian) are CycloneDDS's."""
     from cyclonedds.idl import Endianness
@@ -122,6 +123,10 @@ def test_the_one_call_lowstate_serialiser_writes_cyclonedds_bytes():
         generic = m.LowState_.__idl__.serialize(msg)
         assert msg.serialize() == generic
         assert m.LowState_.deserialize(generic).serialize() == generic  # uint8 arrays come back as bytes
+        # the one-call deserialiser gives CycloneDDS's own object, field for field
+        assert m.LowState_.deserialize(generic) == m.LowState_.__idl__.deserialize(generic, has_header=True)
+        big = m.LowState_.__idl__.serialize(msg, endianness=Endianness.Big)
+        assert m.LowState_.deserialize(big) == m.LowState_.__idl__.deserialize(big, has_header=True)
         assert msg.serialize(use_version_2=True) == m.LowState_.__idl__.serialize(msg, use_version_2=True)
         assert msg.serialize(endianness=Endianness.Big) == m.LowState_.__idl__.serialize(msg, endianness=Endianness.Big)
     assert msg.serialize(use_version_2=True) != generic
