@@ -192,6 +192,7 @@ class ObservationBuilder:
         self._default = torch.as_tensor(spec.default_joint_pos, dtype=torch.float32)[None]
         self.objects = (reference_objects(reference, spec.fps, self.num_frames)
                         if any(n in REFERENCE_OBJECT_TERMS for n, _ in spec.observation_layout) else None)
+        self._unmeasured = self._unmeasured_objects(self.objects) if self.objects is not None else {}
         self.align(np.array([1.0, 0.0, 0.0, 0.0]))
         self._check_terms()
 
@@ -201,16 +202,17 @@ class ObservationBuilder:
         m = self.motion
         d = torch.as_tensor(delta_wxyz, dtype=torch.float32)
         self.heading_delta = np.asarray(delta_wxyz, dtype=np.float64)
-        self.ref_body_pos_w = quat_apply(d.expand(*m.body_pos_w.shape[:-1], 4), m.body_pos_w)
+        def turned(v: torch.Tensor) -> torch.Tensor:  # vectors (…, 3) rotated by d
+            return quat_apply(d.expand(*v.shape[:-1], 4), v)
+
+        self.ref_body_pos_w, self.ref_body_lin_vel_w, self.ref_body_ang_vel_w = (
+            turned(m.body_pos_w), turned(m.body_lin_vel_w), turned(m.body_ang_vel_w))
         self.ref_body_quat_w = quat_mul(d.expand_as(m.body_quat_w), m.body_quat_w)
-        self.ref_body_lin_vel_w = quat_apply(d.expand(*m.body_lin_vel_w.shape[:-1], 4), m.body_lin_vel_w)
-        self.ref_body_ang_vel_w = quat_apply(d.expand(*m.body_ang_vel_w.shape[:-1], 4), m.body_ang_vel_w)
         if self.objects is not None:
             o = self.objects
-            self.ref_object_pos_w = quat_apply(d.expand(*o.pos_w.shape[:-1], 4), o.pos_w)
+            self.ref_object_pos_w, self.ref_object_lin_vel_w, self.ref_object_ang_vel_w = (
+                turned(o.pos_w), turned(o.lin_vel_w), turned(o.ang_vel_w))
             self.ref_object_quat_w = quat_mul(d.expand_as(o.quat_w), o.quat_w)
-            self.ref_object_lin_vel_w = quat_apply(d.expand(*o.lin_vel_w.shape[:-1], 4), o.lin_vel_w)
-            self.ref_object_ang_vel_w = quat_apply(d.expand(*o.ang_vel_w.shape[:-1], 4), o.ang_vel_w)
 
     def heading_alignment(self, state: RobotState) -> np.ndarray:
         """Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) (wxyz) for the robot standing in ``state``."""
@@ -261,19 +263,21 @@ class ObservationBuilder:
         o = self.objects
         if o is None:
             return None
-        M, H, S = o.pos_w.shape[1], len(o.hand_bodies), len(o.support_names)
-
-        def nan(*shape: int) -> torch.Tensor:
-            return torch.full((1, *shape), float("nan"))
-
         return ObjectState(
-            names=o.names, support_names=o.support_names, pos_w=nan(M, 3), quat_w=nan(M, 4), lin_vel_w=nan(M, 3),
-            ang_vel_w=nan(M, 3), ref_pos_w=self.ref_object_pos_w[frame][None],
-            ref_quat_w=self.ref_object_quat_w[frame][None], ref_lin_vel_w=self.ref_object_lin_vel_w[frame][None],
-            ref_ang_vel_w=self.ref_object_ang_vel_w[frame][None], hand_pos_w=nan(H, 3), hand_target_w=nan(H, M, 3),
-            hand_gate=o.hand_gate[frame][None], hand_force_n=nan(H, M), support_gate=o.support_gate[frame][None],
-            support_force_n=nan(M, S), static_pos_w=torch.full_like(o.static_pos_w, float("nan")),
-            static_quat_w=torch.full_like(o.static_quat_w, float("nan")))
+            names=o.names, support_names=o.support_names, **self._unmeasured,
+            ref_pos_w=self.ref_object_pos_w[frame][None], ref_quat_w=self.ref_object_quat_w[frame][None],
+            ref_lin_vel_w=self.ref_object_lin_vel_w[frame][None], ref_ang_vel_w=self.ref_object_ang_vel_w[frame][None],
+            hand_gate=o.hand_gate[frame][None], support_gate=o.support_gate[frame][None])
+
+    @staticmethod
+    def _unmeasured_objects(o) -> dict[str, torch.Tensor]:
+        """The ``ObjectState`` fields a robot does not measure, as NaN (allocated once)."""
+        M, H, S = o.pos_w.shape[1], len(o.hand_bodies), len(o.support_names)
+        shapes = {"pos_w": (M, 3), "quat_w": (M, 4), "lin_vel_w": (M, 3), "ang_vel_w": (M, 3), "hand_pos_w": (H, 3),
+                  "hand_target_w": (H, M, 3), "hand_force_n": (H, M), "support_force_n": (M, S)}
+        nan = {k: torch.full((1, *shape), float("nan")) for k, shape in shapes.items()}
+        return {**nan, "static_pos_w": torch.full_like(o.static_pos_w, float("nan")),
+                "static_quat_w": torch.full_like(o.static_quat_w, float("nan"))}
 
     def observation(self, s: TrackingState) -> np.ndarray:
         """(D,) float32: the layout's terms in order, clipped to ±observation_clip."""

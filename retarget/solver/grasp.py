@@ -351,7 +351,7 @@ def _solve_frame(q: np.ndarray, q_bar: np.ndarray, previous, centre: np.ndarray,
         face[hold.axis] = hold.side[k] * (half[hold.axis] - depth)
         targets.append(centre + rot @ face)
         normals.append(-hold.side[k] * rot[:, hold.axis])  # into the box
-    keep_d, keep = _kept_distances(m, q_bar, centre, rot, box, cfg)
+    keep_d, keep = _kept_distances(m, data, q_bar, centre, rot, box, cfg)
     for _ in range(cfg.iterations):
         pin.computeJointJacobians(m, data, q)
         pin.updateFramePlacements(m, data)
@@ -416,16 +416,15 @@ def _point_distances(data, frames: list[int], centre: np.ndarray, rot: np.ndarra
     return d, grad_b @ rot.T
 
 
-def _kept_distances(m, q_bar: np.ndarray, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
+def _kept_distances(m, data, q_bar: np.ndarray, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
                     cfg: GraspCfg) -> tuple[np.ndarray, np.ndarray]:
     """(distances (K,), indices into ``_model().keep_frames`` (K,)): the forearms' surface points
-    within ``keep_m`` of the box in the per-frame solution, and their distances (at least 0)."""
+    within ``keep_m`` of the box in the per-frame solution, and their distances (at least 0).
+    ``data`` is posed at ``q_bar`` here (the frame's solve re-poses it at its own iterate)."""
     import pinocchio as pin
 
-    mdl = _model()
-    data = m.createData()
     pin.framesForwardKinematics(m, data, q_bar)
-    d, _ = _point_distances(data, list(mdl.keep_frames), centre, rot, box)
+    d, _ = _point_distances(data, list(_model().keep_frames), centre, rot, box)
     near = np.flatnonzero(d < cfg.keep_m)
     return np.maximum(d[near], 0.0), near
 
