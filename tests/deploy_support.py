@@ -19,11 +19,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def domain_id(k: int) -> int:
-    """A DDS domain per test (k < 8) and per pytest process, so that concurrent runs on one
+    """A DDS domain per test (k < 12) and per pytest process, so that concurrent runs on one
     machine never share a loopback domain (CycloneDDS accepts ids up to 232)."""
-    if not 0 <= k < 8:
-        raise ValueError(f"domain_id: k must be in [0, 8), got {k}")
-    return 1 + (os.getpid() % 28) * 8 + k
+    if not 0 <= k < 12:
+        raise ValueError(f"domain_id: k must be in [0, 12), got {k}")
+    return 1 + (os.getpid() % 19) * 12 + k
 
 
 def save_with_metadata(model: onnx.ModelProto, meta: dict, path: Path) -> Path:

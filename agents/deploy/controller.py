@@ -15,7 +15,8 @@ import numpy as np
 
 from agents.deploy import safety
 from agents.deploy.messages import REMOTE_KEYS, JointCommand, RobotState
-from agents.deploy.observation import ObservationBuilder, PolicySpec, torso_tilt_rad
+from agents.deploy.mocap import BASE_BODY, MocapFrame, MocapTracker, MocapTrackerCfg
+from agents.deploy.observation import BaseEstimate, ObjectEstimate, ObservationBuilder, PolicySpec, torso_tilt_rad
 from agents.deploy.safety import DampReason, SafetyCfg, Stage, StageMachine
 from otr_gym import robot
 
@@ -31,6 +32,7 @@ class CycleInput:
     state: RobotState | None  # the LowState taken this cycle; None when none arrived
     crc_ok: bool = True  # that LowState's CRC matched
     keys: int = 0  # KEY_* bits pressed on the keyboard since the last cycle
+    mocap: MocapFrame | None = None  # the motion-capture frame taken this cycle (with ``--mocap``)
 
 
 @dataclass
@@ -43,6 +45,9 @@ class CycleOutput:
     tilt_rad: float
     mpjpe_m: float
     ref_tilt_rad: float = float("nan")  # the reference's torso tilt on the frame the robot should be on
+    #: (M,) m: each moving object's captured position from the aligned reference's (the frame the
+    #: robot should be on; its last frame after tracking), once tracking has begun
+    object_error_m: np.ndarray | None = None
 
 
 @dataclass
@@ -50,6 +55,8 @@ class ControllerCfg:
     safety: SafetyCfg
     auto_start: bool = False  # track as soon as the ramp ends (sim2sim, tests)
     duration_s: float | None = None  # stop tracking after this long
+    #: motion capture (``--mocap``): reference body name -> stream name where they differ; None: no mocap
+    mocap_names: dict[str, str] | None = None
 
 
 Policy = Callable[[np.ndarray], np.ndarray]  # (D,) float32 -> (29,)
@@ -80,17 +87,42 @@ class Controller:
         self.frame = -1
         self.last_action = np.zeros(robot.NUM_JOINTS)
         self._remote_prev = 0
+        self.fault_detail = ""  # the message of a damping fault that has more to say than its reason
+        self.mocap = None if cfg.mocap_names is None else MocapTracker(self.mocap_cfg(builder, cfg))
+        self._tracked = False  # tracking has begun (the clip is aligned to the robot)
+
+    @staticmethod
+    def mocap_cfg(builder: ObservationBuilder, cfg: ControllerCfg) -> MocapTrackerCfg:
+        """The bodies to follow: the pelvis and the reference's moving objects; those the policy
+        reads are required."""
+        objects = tuple(builder.objects.names) if builder.objects is not None else ()
+        required = ((BASE_BODY,) if builder.needs_base else ()) + (objects if builder.needs_objects else ())
+        return MocapTrackerCfg(bodies=(BASE_BODY, *objects), required=required, names=dict(cfg.mocap_names or {}),
+                               stale_cycles=cfg.safety.stale_cycles)
 
     @property
     def stage(self) -> Stage:
         return self.stages.stage
 
-    def _damp(self, reason: str) -> None:
+    def _damp(self, reason: str, detail: str = "") -> None:
+        if self.stage != Stage.DAMP and detail:
+            self.fault_detail = detail
         self.stages.go(Stage.DAMP, self.cycle, reason)
+
+    def _mocap_fault(self) -> bool:
+        """Damp (True) when the policy reads motion capture and the stream cannot feed it."""
+        if self.mocap is None or not self.mocap.cfg.required:
+            return False
+        fault = self.mocap.current_fault()
+        if fault is not None:
+            self._damp(*fault)
+        return fault is not None
 
     def step(self, inp: CycleInput) -> CycleOutput:
         self.cycle += 1
         self._ingest(inp)
+        if self.mocap is not None:
+            self.mocap.update(inp.mocap)
         keys = inp.keys
         if self.state is not None:
             remote = remote_keys_to_operator(self.state.remote_keys)
@@ -126,6 +158,8 @@ class Controller:
                 self._start(inp.t_s, "auto_start" if self.cfg.auto_start else "operator")
             else:
                 out.command = safety.ramp_command(self.spec.default_joint_pos, self.spec.default_joint_pos, 1.0)
+        if self.stage in (Stage.BLEND, Stage.TRACK):
+            self._mocap_fault()
         if self.stage == Stage.BLEND:
             progress = (inp.t_s - self._blend_t0) / self.cfg.safety.blend_s
             if progress >= 1.0:
@@ -144,6 +178,7 @@ class Controller:
         if self.stage == Stage.DAMP:
             out.command = safety.damping_command(self.cfg.safety)
         out.stage = self.stage
+        out.object_error_m = self._object_error(out.frame)
         return out
 
     # ------------------------------------------------------------ internals
@@ -162,14 +197,41 @@ class Controller:
 
     def _start(self, t_s: float, reason: str) -> None:
         """From HOLD: the blend to the reference's first frame, or straight to tracking."""
+        if self._mocap_fault():
+            return
         if self.cfg.safety.blend_s > 0.0:
             self._blend_t0 = t_s
             self.stages.go(Stage.BLEND, self.cycle, reason)
         else:
             self._start_tracking(t_s, reason)
 
+    def _base(self) -> BaseEstimate | None:
+        """The pelvis as motion capture measures it, when the policy reads it."""
+        if self.mocap is None or not self.builder.needs_base:
+            return None
+        m = self.mocap.motion()
+        return None if m is None else BaseEstimate(m.pos_w[0], m.lin_vel_w[0], m.quat_wxyz[0])
+
+    def _objects(self) -> ObjectEstimate | None:
+        """The moving objects as motion capture measures them, when the policy reads them."""
+        if self.mocap is None or not self.builder.needs_objects:
+            return None
+        m = self.mocap.motion()
+        return None if m is None else ObjectEstimate(m.pos_w[1:], m.quat_wxyz[1:], m.lin_vel_w[1:], m.ang_vel_w[1:])
+
+    def _object_error(self, frame: int) -> np.ndarray | None:
+        if self.mocap is None or not self._tracked or self.builder.objects is None:
+            return None
+        m = self.mocap.motion()
+        if m is None:
+            return None
+        on = self.builder.num_frames - 1 if frame < 0 else frame - 1
+        ref = self.builder.ref_object_pos_w[on].double().numpy()
+        return np.linalg.norm(m.pos_w[1:] - ref, axis=-1)
+
     def _start_tracking(self, t_s: float, reason: str) -> None:
-        self.builder.align(self.builder.heading_alignment(self.state))
+        self.builder.align(*self.builder.alignment(self.state, self._base()))
+        self._tracked = True
         self.frame = 1  # the robot stands on frame 0; the observation shows the target frame 1
         self.last_action = np.zeros(robot.NUM_JOINTS)
         self._track_t0 = t_s
@@ -186,7 +248,7 @@ class Controller:
         if self.cfg.duration_s is not None and t_s - self._track_t0 >= self.cfg.duration_s:
             self._damp(DampReason.DURATION)
             return
-        s = self.builder.tracking_state(self.state, self.frame, self.last_action)
+        s = self.builder.tracking_state(self.state, self.frame, self.last_action, self._base(), self._objects())
         obs = self.builder.observation(s)
         raw = np.asarray(self.policy(obs), dtype=np.float64).reshape(-1)
         out.observation, out.action, out.frame = obs, raw, self.frame

@@ -65,6 +65,15 @@ class G1Domain:
                                  "configuration is open in this process.") from exc
         self.domain_id, self.interface = domain_id, interface
 
+    def mocap_topic(self, name: str) -> Topic:
+        """A motion-capture topic (``agents.deploy.mocap.MocapFrame_``)."""
+        from agents.deploy.mocap import MocapFrame_
+
+        try:
+            return Topic(self.participant, name, MocapFrame_)
+        except DDSException as exc:
+            raise TransportError(f"mocap topic {name!r}: {exc}") from exc
+
     def writer(self, topic: Topic) -> DataWriter:
         return DataWriter(self.participant, topic)
 

@@ -13,8 +13,15 @@ Arrays (C cycles; NaN where a quantity did not exist that cycle, e.g. no action 
 - outputs: ``stage`` (``safety.Stage``), ``frame`` (target frame, −1 when not tracking),
   ``observation`` (C, D) float32, ``action`` (C, 29) raw policy output, ``command`` (C, 5, 29)
   rows q, dq, kp, kd, τ, ``tilt_rad``, ``mpjpe_m``;
+- motion capture (``otr deploy --mocap``; B bodies, ``meta["mocap"]["bodies"]``: the pelvis,
+  then the reference's moving objects, by the reference's names): ``mocap_fresh`` (a new frame
+  arrived), ``mocap_stamp_ns`` (its capture time), ``mocap_seq``, ``mocap_present`` (C, B) (the
+  frame carried the body), ``mocap_pos`` (C, B, 3) m and ``mocap_quat`` (C, B, 4) wxyz as
+  captured, ``object_error_m`` (C, B − 1): each object's distance from the aligned reference's
+  (``controller.CycleOutput.object_error_m``);
 - ``transition_cycle``/``transition_from``/``transition_to``/``transition_reason``;
-- ``meta``: JSON (policy and reference paths with SHA-256, configuration, machine).
+- ``meta``: JSON (policy and reference paths with SHA-256, configuration, machine; the message of
+  a fault that damped, ``fault_detail``).
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import numpy as np
 
 from agents.deploy.controller import CycleInput, CycleOutput
 from agents.deploy.messages import RobotState
+from agents.deploy.mocap import MocapFrame, MocapTracker
 from agents.deploy.safety import Stage, Transition
 from otr_gym import robot
 from otr_gym.io import load_npz, save_npz
@@ -61,8 +69,13 @@ class CycleLog:
 
     CHUNK = 4096
 
-    def __init__(self, observation_dim: int, meta: dict):
+    def __init__(self, observation_dim: int, meta: dict, mocap: MocapTracker | None = None):
         self.meta = dict(meta, format=FORMAT)
+        self.mocap = mocap
+        B = 0 if mocap is None else len(mocap.cfg.bodies)
+        if mocap is not None:
+            self.meta["mocap"] = dict(self.meta.get("mocap", {}), bodies=list(mocap.cfg.bodies),
+                                      names=dict(mocap.cfg.names))
         self.n = 0
         J = robot.NUM_JOINTS
         self._shapes = {
@@ -74,6 +87,9 @@ class CycleLog:
             "stage": ((), np.int8), "frame": ((), np.int32), "observation": ((observation_dim,), np.float32),
             "action": ((J,), np.float64), "command": ((5, J), np.float64), "tilt_rad": ((), np.float64),
             "mpjpe_m": ((), np.float64), "ref_tilt_rad": ((), np.float64),
+            "mocap_fresh": ((), bool), "mocap_stamp_ns": ((), np.int64), "mocap_seq": ((), np.int64),
+            "mocap_present": ((B,), bool), "mocap_pos": ((B, 3), np.float64), "mocap_quat": ((B, 4), np.float64),
+            "object_error_m": ((max(B - 1, 0),), np.float64),
         }
         self._arrays = {k: self._empty(k, self.CHUNK) for k in self._shapes}
 
@@ -103,6 +119,12 @@ class CycleLog:
             a["action"][i] = out.action
         if out.command is not None:
             a["command"][i] = out.command.as_array()
+        if inp.mocap is not None and self.mocap is not None:
+            a["mocap_fresh"][i], a["mocap_stamp_ns"][i], a["mocap_seq"][i] = True, inp.mocap.stamp_ns, inp.mocap.seq
+            a["mocap_pos"][i], a["mocap_quat"][i] = self.mocap.rows(inp.mocap)
+            a["mocap_present"][i] = [self.mocap.stream_name(b) in inp.mocap.names for b in self.mocap.cfg.bodies]
+        if out.object_error_m is not None:
+            a["object_error_m"][i] = out.object_error_m
         self.n += 1
 
     def save(self, path: str | Path, transitions: list[Transition]) -> Path:
@@ -148,6 +170,7 @@ class DeployLog:
     def inputs(self) -> list[CycleInput]:
         """The controller inputs of every cycle, as recorded."""
         a = self.arrays
+        mocap = self.meta.get("mocap")
         out = []
         for i in range(self.num_cycles):
             state = None
@@ -157,8 +180,14 @@ class DeployLog:
                                    accel_b=a["state_accel_b"][i], tick_ms=int(a["state_tick_ms"][i]),
                                    mode_machine=int(a["state_mode_machine"][i]),
                                    remote_keys=int(a["state_remote_keys"][i]))
+            frame = None
+            if mocap is not None and a["mocap_fresh"][i]:
+                present = a["mocap_present"][i]
+                names = tuple(mocap["names"].get(b, b) for b, p in zip(mocap["bodies"], present, strict=True) if p)
+                frame = MocapFrame(int(a["mocap_stamp_ns"][i]), int(a["mocap_seq"][i]), names,
+                                   a["mocap_pos"][i][present], a["mocap_quat"][i][present])
             out.append(CycleInput(t_s=float(a["t_s"][i]), state=state, crc_ok=bool(a["crc_ok"][i]),
-                                  keys=int(a["keys"][i])))
+                                  keys=int(a["keys"][i]), mocap=frame))
         return out
 
     def transitions(self) -> list[tuple[float, str, str, str]]:
@@ -234,6 +263,35 @@ def summary_rows(log: DeployLog) -> list[tuple[str, str]]:
         if (start := start_tilt_error_deg(log)) is not None:
             rows.append(("start", f"torso tilt within {start:.1f}° of the reference's in the first "
                                   f"{START_WINDOW_S:g} s of tracking"))
+    rows += mocap_rows(log)
+    if m.get("fault_detail"):
+        rows.append(("fault", m["fault_detail"]))
+    return rows
+
+
+def mocap_rows(log: DeployLog) -> list[tuple[str, str]]:
+    """``otr inspect`` rows of the motion-capture stream and of the objects it followed: the box
+    error over tracking and where each object ended, from its reference's last frame."""
+    a, mocap = log.arrays, log.meta.get("mocap")
+    if not mocap or "mocap_fresh" not in a:
+        return []
+    fresh = a["mocap_fresh"]
+    rows = [("mocap", f"{mocap.get('topic', '?')}: {fresh.mean():.1%} of cycles fresh, bodies "
+                      f"{', '.join(mocap['bodies'])}")]
+    track = a["stage"] == Stage.TRACK
+    for k, name in enumerate(mocap["bodies"][1:]):
+        error = a["object_error_m"][:, k]
+        seen = np.flatnonzero(np.isfinite(error))
+        if not seen.size:
+            continue
+        during = error[track & np.isfinite(error)]
+        last = seen[-1]
+        where = a["mocap_pos"][last, k + 1]
+        on = "last frame" if a["frame"][last] < 0 else f"frame {a['frame'][last] - 1}"
+        rows.append((name, (f"error {np.mean(during) * 100:.1f} cm mean / {np.max(during) * 100:.1f} cm max over "
+                            "tracking; " if during.size else "")
+                     + f"ended at ({where[0]:.2f}, {where[1]:.2f}, {where[2]:.2f}) m, {error[last] * 100:.1f} cm "
+                       f"from the reference's {on}"))
     return rows
 
 

@@ -14,9 +14,13 @@ What the robot measures and how it maps onto the training state:
 - body poses (the 14 tracked bodies, the torso anchor among them): forward kinematics of the
   training MJCF (MuJoCo ``mj_kinematics``) from the IMU orientation and the joint angles, with
   the pelvis at the world origin. Orientations and anchor-relative positions are exact; world
-  positions and linear velocities are unknown, so terms that need them (``anchor_pos_b``,
-  ``base_lin_vel_b``: mjlab's state-estimation variant) are refused at start-up, and any other
-  term that reads an unmeasured field sees NaN there and is refused the same way.
+  positions and linear velocities are not in the LowState: terms that need them
+  (``TERM_SOURCES``: ``anchor_pos_b``, ``base_lin_vel_b`` of mjlab's state-estimation variant,
+  the object's pose of the box task's ``mocap`` actor) need a source the runner is given —
+  motion capture (``BaseEstimate``/``ObjectEstimate`` from ``agents.deploy.mocap``: the pelvis
+  pose and velocity place the bodies in the capture's world) or the state estimator — and
+  are refused at start-up, naming the terms and the flag, without one; any other term that
+  reads an unmeasured field sees NaN there and is refused the same way.
 
 Reference timing follows training (``envs.mdp.commands``): the robot stands on start frame 0,
 the observation shows target frame 1, and every policy step advances the target by one frame.
@@ -25,7 +29,10 @@ Yaw alignment at policy start (docs/environment.md §9): the IMU's heading is ar
 starts the heading difference Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) is recorded, and the
 whole clip is rotated by Δ about the world z axis (``otr_gym.rotations``, the same maths as
 ``envs.mdp.state.aligned_targets``). In training the robot starts on its reference, so Δ ≈ 0
-there and the observation is the same.
+there and the observation is the same. With motion capture the heading comes from the captured
+pelvis, and the clip is also shifted in x, y so that its frame-0 anchor stands where the robot's
+does (the floor is z = 0 in both worlds): the objects must be placed relative to the robot as
+the reference has them.
 """
 
 from __future__ import annotations
@@ -42,22 +49,28 @@ from envs.mdp.metrics import mpjpe_root_relative
 from envs.mdp.motion import MotionLibrary
 from envs.mdp.state import ObjectState, TrackingState
 from otr_gym import robot
-from otr_gym.rotations import quat_apply, quat_conj, quat_mul, quat_to_matrix, quat_yaw
+from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_conj, quat_mul, quat_to_matrix, quat_yaw
 from otr_gym.scene import robot_model
 
-#: Terms that need what the G1's low-level state does not give.
-UNOBSERVABLE_TERMS = {
-    "anchor_pos_b": "the robot's world position",
-    "base_lin_vel_b": "the pelvis linear velocity",
-    "object_pos_b": "the object's pose (motion capture)",
-    "object_ori_b": "the object's pose (motion capture)",
-    "object_lin_vel_b": "the object's velocity (motion capture)",
-    "object_ang_vel_b": "the object's velocity (motion capture)",
-    "object_pos_error_b": "the object's pose (motion capture)",
-    "object_contact_forces": "the hands' and the object's contact forces",
-    "static_object_pos_b": "the robot's world position (motion capture)",
-    "static_object_ori_b": "the robot's world heading (motion capture)",
+#: Sources beyond the LowState that an observation term can need: motion capture (``--mocap``,
+#: ``agents.deploy.mocap``) gives the robot's world pose and the objects'; the state estimator
+#: (``--state-estimator``) the robot's world position and velocity from the IMU and the legs.
+MOCAP, ESTIMATOR = "mocap", "estimator"
+#: term -> (what it needs, the sources that give it); an empty tuple: no deployment gives it.
+TERM_SOURCES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "anchor_pos_b": ("the robot's world position", (MOCAP, ESTIMATOR)),
+    "base_lin_vel_b": ("the pelvis linear velocity", (MOCAP, ESTIMATOR)),
+    "static_object_pos_b": ("the robot's world position", (MOCAP, ESTIMATOR)),
+    "static_object_ori_b": ("the robot's world heading", (MOCAP, ESTIMATOR)),
+    "object_pos_b": ("the object's pose", (MOCAP,)),
+    "object_ori_b": ("the object's pose", (MOCAP,)),
+    "object_lin_vel_b": ("the object's velocity", (MOCAP,)),
+    "object_ang_vel_b": ("the object's velocity", (MOCAP,)),
+    "object_pos_error_b": ("the object's pose", (MOCAP,)),
+    "object_contact_forces": ("the hands' and the object's contact forces", ()),
 }
+SOURCE_FLAGS = {MOCAP: "--mocap TOPIC (a motion-capture stream; `otr sim-robot --publish-mocap TOPIC` in "
+                       "simulation)", ESTIMATOR: "--state-estimator"}
 #: Box-task terms that read the reference only: a runner computes them from the clip.
 REFERENCE_OBJECT_TERMS = ("object_command", "contact_schedule")
 
@@ -87,6 +100,22 @@ class PolicySpec:
     def observation_dim(self) -> int:
         return sum(d for _, d in self.observation_layout)
 
+    def needs(self) -> dict[str, tuple[str, tuple[str, ...]]]:
+        """The layout's terms that need a source beyond the LowState (``TERM_SOURCES``)."""
+        return {n: TERM_SOURCES[n] for n, _ in self.observation_layout if n in TERM_SOURCES}
+
+    def check_sources(self, sources: frozenset[str]) -> None:
+        """Refuse the policy, naming the terms and the flags, if ``sources`` cannot feed it."""
+        unmet = {n: v for n, v in self.needs().items() if not set(v[1]) & sources}
+        if not unmet:
+            return
+        flags = sorted({f for _, srcs in unmet.values() for f in srcs})
+        raise PolicySpecError(
+            f"{self.source}: observation terms {', '.join(unmet)} need "
+            f"{', '.join(dict.fromkeys(w for w, _ in unmet.values()))}, which the G1's low-level state does not "
+            f"give: run with {' or '.join(SOURCE_FLAGS[f] for f in flags)}, or deploy a policy trained without "
+            "them (the default actors: OTR-G1-Track-v0's 154 terms, OTR-G1-BoxTrack-v0's perception_free)")
+
     @classmethod
     def from_metadata(cls, meta: dict, source: str = "<metadata>") -> PolicySpec:
         need = ("joint_names", "default_joint_pos", "joint_stiffness", "joint_damping", "action_scale",
@@ -105,11 +134,11 @@ class PolicySpec:
             arrays[key] = a
         layout = tuple((str(t["name"]), int(t["dim"])) for t in meta["observation_layout"])
         for name, _ in layout:
-            if name in UNOBSERVABLE_TERMS:
-                raise PolicySpecError(f"{source}: observation term '{name}' needs {UNOBSERVABLE_TERMS[name]}, "
-                                      "which the G1's low-level state does not give; deploy a policy trained "
-                                      "without it (the default actors: OTR-G1-Track-v0's 154 terms, "
-                                      "OTR-G1-BoxTrack-v0's perception_free)")
+            if name in TERM_SOURCES and not TERM_SOURCES[name][1]:
+                raise PolicySpecError(f"{source}: observation term '{name}' needs {TERM_SOURCES[name][0]}, "
+                                      "which no deployment measures; deploy a policy trained without it (the "
+                                      "default actors: OTR-G1-Track-v0's 154 terms, OTR-G1-BoxTrack-v0's "
+                                      "perception_free)")
         fps = float(meta["fps"])
         return cls(source=source, default_joint_pos=arrays["default_joint_pos"], kp=arrays["joint_stiffness"],
                    kd=arrays["joint_damping"], action_scale=arrays["action_scale"],
@@ -138,10 +167,12 @@ class RobotKinematics:
         self.data = mujoco.MjData(self.model)
         self.body_ids = np.array([self.model.body(b).id for b in body_names])
 
-    def body_poses(self, quat_wxyz: np.ndarray, joint_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(K, 3) positions (m, pelvis at the origin) and (K, 4) orientations (wxyz), world."""
+    def body_poses(self, quat_wxyz: np.ndarray, joint_pos: np.ndarray,
+                   pelvis_pos_w: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(K, 3) positions (m; the pelvis at ``pelvis_pos_w``, default the origin) and (K, 4)
+        orientations (wxyz), world."""
         qpos = self.data.qpos
-        qpos[:3] = 0.0
+        qpos[:3] = 0.0 if pelvis_pos_w is None else pelvis_pos_w
         qpos[3:7] = quat_wxyz / np.linalg.norm(quat_wxyz)
         qpos[7:7 + robot.NUM_JOINTS] = joint_pos
         self._mj.mj_kinematics(self.model, self.data)
@@ -171,10 +202,34 @@ def reference_objects(reference, fps: float, num_frames: int):
     return library
 
 
-class ObservationBuilder:
-    """Observation vectors for a ``PolicySpec`` tracking one reference clip (see module doc)."""
+@dataclass(frozen=True)
+class BaseEstimate:
+    """The pelvis in the world a source measures (motion capture, the state estimator)."""
 
-    def __init__(self, spec: PolicySpec, reference):
+    pos_w: np.ndarray  # (3,) m
+    lin_vel_w: np.ndarray  # (3,) m/s
+    quat_wxyz: np.ndarray | None = None  # (4,) its orientation in that world; None: the IMU's
+
+
+@dataclass(frozen=True)
+class ObjectEstimate:
+    """The moving objects (M, in the reference's order) as motion capture measures them."""
+
+    pos_w: np.ndarray  # (M, 3) m
+    quat_wxyz: np.ndarray  # (M, 4)
+    lin_vel_w: np.ndarray  # (M, 3) m/s
+    ang_vel_w: np.ndarray  # (M, 3) rad/s
+
+
+class ObservationBuilder:
+    """Observation vectors for a ``PolicySpec`` tracking one reference clip (see module doc);
+    ``sources`` (``MOCAP``, ``ESTIMATOR``) are what the runner feeds beyond the LowState."""
+
+    def __init__(self, spec: PolicySpec, reference, sources: frozenset[str] = frozenset()):
+        spec.check_sources(sources)
+        needs = spec.needs()
+        self.needs_base = bool(needs)  # every such term reads the robot's world pose
+        self.needs_objects = any(srcs == (MOCAP,) for _, srcs in needs.values())
         missing = [b for b in (spec.anchor_body, "pelvis") if b not in spec.body_names]
         if missing:
             raise PolicySpecError(f"{spec.source}: tracked bodies {spec.body_names} lack {missing}")
@@ -190,35 +245,52 @@ class ObservationBuilder:
         if unknown:
             raise PolicySpecError(f"{spec.source}: unknown observation terms {unknown} (not in envs.mdp.observations)")
         self._default = torch.as_tensor(spec.default_joint_pos, dtype=torch.float32)[None]
+        object_terms = (*REFERENCE_OBJECT_TERMS, *(n for n, _ in needs.items() if n.startswith(("object", "static"))))
         self.objects = (reference_objects(reference, spec.fps, self.num_frames)
-                        if any(n in REFERENCE_OBJECT_TERMS for n, _ in spec.observation_layout) else None)
+                        if any(n in object_terms for n, _ in spec.observation_layout) else None)
         self._unmeasured = self._unmeasured_objects(self.objects) if self.objects is not None else {}
         self.align(np.array([1.0, 0.0, 0.0, 0.0]))
         self._check_terms()
 
     # ------------------------------------------------------------ reference alignment
-    def align(self, delta_wxyz: np.ndarray) -> None:
-        """Rotate the whole clip by the heading ``delta_wxyz`` (world z) about the origin."""
+    def align(self, delta_wxyz: np.ndarray, offset_w: np.ndarray | None = None) -> None:
+        """Rotate the whole clip by the heading ``delta_wxyz`` (world z) about the origin, then
+        shift it by ``offset_w`` (m, default none)."""
         m = self.motion
         d = torch.as_tensor(delta_wxyz, dtype=torch.float32)
+        offset = torch.zeros(3) if offset_w is None else torch.as_tensor(offset_w, dtype=torch.float32)
         self.heading_delta = np.asarray(delta_wxyz, dtype=np.float64)
+        self.offset_w = offset.double().numpy()
+
         def turned(v: torch.Tensor) -> torch.Tensor:  # vectors (…, 3) rotated by d
             return quat_apply(d.expand(*v.shape[:-1], 4), v)
 
         self.ref_body_pos_w, self.ref_body_lin_vel_w, self.ref_body_ang_vel_w = (
-            turned(m.body_pos_w), turned(m.body_lin_vel_w), turned(m.body_ang_vel_w))
+            turned(m.body_pos_w) + offset, turned(m.body_lin_vel_w), turned(m.body_ang_vel_w))
         self.ref_body_quat_w = quat_mul(d.expand_as(m.body_quat_w), m.body_quat_w)
         if self.objects is not None:
             o = self.objects
             self.ref_object_pos_w, self.ref_object_lin_vel_w, self.ref_object_ang_vel_w = (
-                turned(o.pos_w), turned(o.lin_vel_w), turned(o.ang_vel_w))
+                turned(o.pos_w) + offset, turned(o.lin_vel_w), turned(o.ang_vel_w))
             self.ref_object_quat_w = quat_mul(d.expand_as(o.quat_w), o.quat_w)
+            # the table stands where the reference has it, relative to the robot's start
+            self.ref_static_pos_w = turned(o.static_pos_w) + offset
+            self.ref_static_quat_w = quat_mul(d.expand_as(o.static_quat_w), o.static_quat_w)
 
-    def heading_alignment(self, state: RobotState) -> np.ndarray:
-        """Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹) (wxyz) for the robot standing in ``state``."""
-        _, body_quat = self.kinematics.body_poses(state.quat_wxyz, state.joint_pos)
+    def alignment(self, state: RobotState, base: BaseEstimate | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(Δ wxyz, offset m) that put the clip's frame 0 on the robot standing in ``state``:
+        Δ = yaw(q_robotAnchor · q_refAnchor[0]⁻¹); with a measured ``base`` (motion capture) the
+        offset also moves the reference anchor's x, y onto the robot's (heights stay: the floor
+        is z = 0 in both), otherwise it is zero (the pelvis sits at the origin)."""
+        quat = state.quat_wxyz if base is None or base.quat_wxyz is None else base.quat_wxyz
+        body_pos, body_quat = self.kinematics.body_poses(quat, state.joint_pos, None if base is None else base.pos_w)
         ref_anchor = self.motion.body_quat_w[0, self.anchor].double().numpy()
-        return quat_yaw(quat_mul(body_quat[self.anchor], quat_conj(ref_anchor)))
+        delta = quat_yaw(quat_mul(body_quat[self.anchor], quat_conj(ref_anchor)))
+        offset = np.zeros(3)
+        if base is not None:
+            ref_pos = quat_apply(delta, self.motion.body_pos_w[0, self.anchor].double().numpy())
+            offset[:2] = body_pos[self.anchor, :2] - ref_pos[:2]
+        return delta, offset
 
     # ------------------------------------------------------------ per cycle
     def reference_joint_pos(self, frame: int) -> np.ndarray:
@@ -229,10 +301,15 @@ class ObservationBuilder:
         """The reference's torso (anchor) tilt from vertical at ``frame`` (rad)."""
         return torso_tilt_rad(self.ref_body_quat_w[frame, self.anchor].double().numpy())
 
-    def tracking_state(self, state: RobotState, frame: int, action: np.ndarray) -> TrackingState:
+    def tracking_state(self, state: RobotState, frame: int, action: np.ndarray, base: BaseEstimate | None = None,
+                       objects: ObjectEstimate | None = None) -> TrackingState:
         """The one-env ``TrackingState`` of the robot in ``state`` against target ``frame``;
-        ``action`` is the (clipped) raw action applied during the last policy step."""
-        body_pos, body_quat = self.kinematics.body_poses(state.quat_wxyz, state.joint_pos)
+        ``action`` is the (clipped) raw action applied during the last policy step; ``base`` and
+        ``objects``: what motion capture or the state estimator measure (else NaN there)."""
+        quat = state.quat_wxyz if base is None or base.quat_wxyz is None else base.quat_wxyz
+        body_pos, body_quat = self.kinematics.body_poses(quat, state.joint_pos, None if base is None else base.pos_w)
+        root_lin_vel_b = (torch.full((1, 3), float("nan")) if base is None else
+                          torch.as_tensor(quat_apply_inverse(quat, base.lin_vel_w), dtype=torch.float32)[None])
 
         def t(x) -> torch.Tensor:
             return torch.as_tensor(np.asarray(x), dtype=torch.float32)[None]
@@ -244,8 +321,8 @@ class ObservationBuilder:
             body_names=self.spec.body_names, anchor=self.anchor,
             end_effectors=torch.as_tensor([i for i, b in enumerate(self.spec.body_names) if b in robot.END_EFFECTORS]),
             contact_body_names=(),
-            joint_pos=t(state.joint_pos), joint_vel=t(state.joint_vel), root_quat_w=t(state.quat_wxyz),
-            root_lin_vel_b=torch.full((1, 3), float("nan")), root_ang_vel_b=t(state.gyro_b),
+            joint_pos=t(state.joint_pos), joint_vel=t(state.joint_vel), root_quat_w=t(quat),
+            root_lin_vel_b=root_lin_vel_b, root_ang_vel_b=t(state.gyro_b),
             body_pos_w=t(body_pos), body_quat_w=t(body_quat), body_lin_vel_w=unknown, body_ang_vel_w=unknown,
             contact_force_n=torch.zeros(1, 0),
             ref_joint_pos=m.joint_pos[frame][None], ref_joint_vel=m.joint_vel[frame][None],
@@ -254,17 +331,25 @@ class ObservationBuilder:
             ref_body_ang_vel_w=self.ref_body_ang_vel_w[frame][None],
             ref_body_pos_aligned_w=unknown, ref_body_quat_aligned_w=torch.full((1, K, 4), float("nan")),
             action=t(action), last_action=torch.full((1, robot.NUM_JOINTS), float("nan")),
-            default_joint_pos=self._default, objects=self._object_state(frame),
+            default_joint_pos=self._default, objects=self._object_state(frame, base is not None, objects),
         )
 
-    def _object_state(self, frame: int) -> ObjectState | None:
-        """The box task's object state at ``frame``: the reference's part (aligned, gates); what
-        a robot would measure of the objects (poses, velocities, forces) is NaN."""
+    def _object_state(self, frame: int, located: bool, measured: ObjectEstimate | None) -> ObjectState | None:
+        """The box task's object state at ``frame``: the reference's part (aligned, gates); the
+        objects' poses and velocities ``measured`` (else NaN); the table where the aligned
+        reference has it once the robot is ``located`` in that world (else NaN); forces NaN."""
         o = self.objects
         if o is None:
             return None
+        fields = dict(self._unmeasured)
+        if measured is not None:
+            fields.update({k: torch.as_tensor(v, dtype=torch.float32)[None] for k, v in (
+                ("pos_w", measured.pos_w), ("quat_w", measured.quat_wxyz), ("lin_vel_w", measured.lin_vel_w),
+                ("ang_vel_w", measured.ang_vel_w))})
+        if located:
+            fields.update(static_pos_w=self.ref_static_pos_w, static_quat_w=self.ref_static_quat_w)
         return ObjectState(
-            names=o.names, support_names=o.support_names, **self._unmeasured,
+            names=o.names, support_names=o.support_names, **fields,
             ref_pos_w=self.ref_object_pos_w[frame][None], ref_quat_w=self.ref_object_quat_w[frame][None],
             ref_lin_vel_w=self.ref_object_lin_vel_w[frame][None], ref_ang_vel_w=self.ref_object_ang_vel_w[frame][None],
             hand_gate=o.hand_gate[frame][None], support_gate=o.support_gate[frame][None])
@@ -297,7 +382,14 @@ class ObservationBuilder:
         stand = RobotState(joint_pos=self.spec.default_joint_pos.copy(), joint_vel=np.zeros(robot.NUM_JOINTS),
                            quat_wxyz=np.array([1.0, 0.0, 0.0, 0.0]), gyro_b=np.zeros(3), accel_b=np.zeros(3),
                            tick_ms=0, mode_machine=0, remote_keys=0)
-        s = self.tracking_state(stand, min(1, self.num_frames - 1), np.zeros(robot.NUM_JOINTS))
+        frame = min(1, self.num_frames - 1)
+        base = BaseEstimate(self.motion.body_pos_w[0, 0].double().numpy(), np.zeros(3)) if self.needs_base else None
+        objects = None
+        if self.needs_objects and self.objects is not None:
+            M = self.objects.pos_w.shape[1]
+            objects = ObjectEstimate(self.objects.pos_w[frame].double().numpy(),
+                                     self.objects.quat_w[frame].double().numpy(), np.zeros((M, 3)), np.zeros((M, 3)))
+        s = self.tracking_state(stand, frame, np.zeros(robot.NUM_JOINTS), base, objects)
         for name, dim, fn in self._terms:
             value = fn(s)
             if value.shape[-1] != dim:

@@ -3,7 +3,9 @@ interface, and ``otr deploy --replay LOG`` to re-run a recorded session offline.
 
 Each cycle, on an absolute 50 Hz grid (``DeadlineClock``): take the newest ``rt/lowstate``,
 let the ``Controller`` decide (stages, safety, observation, ONNX), write ``rt/lowcmd`` with its
-CRC, log the cycle. Operator: Enter or ``s`` (or the remote's Start) starts tracking from HOLD;
+CRC, log the cycle; with ``--mocap TOPIC`` also take the newest motion-capture frame
+(``agents.deploy.mocap``), which feeds the terms that need it and is logged. Operator: Enter or
+``s`` (or the remote's Start) starts tracking from HOLD;
 space, ``e`` or Esc (or the remote's Select) is the e-stop; Ctrl-C stops (damping) and a
 second Ctrl-C quits at once. After entering DAMP the runner keeps sending damping for
 ``--damp-s`` seconds and exits; the log is written on every exit path.
@@ -27,11 +29,13 @@ from agents.deploy import crc
 from agents.deploy.controller import KEY_ESTOP, KEY_START, KEY_STOP, Controller, ControllerCfg, CycleInput
 from agents.deploy.log import NS, CycleLog, DeployLog, file_sha256, log_file
 from agents.deploy.messages import low_cmd, robot_state
-from agents.deploy.observation import ObservationBuilder, PolicySpec, PolicySpecError
+from agents.deploy.mocap import TOPIC_MOCAP, MocapFault, mocap_frame, name_map
+from agents.deploy.observation import MOCAP, ObservationBuilder, PolicySpec, PolicySpecError
 from agents.deploy.onnx_policy import OnnxPolicy
 from agents.deploy.safety import SafetyCfg, Stage
 
 REPLAY_TOL = 1e-6
+MOCAP_FAULTS = (MocapFault.STALE, MocapFault.NAN, MocapFault.MISSING_BODY)
 
 
 class DeadlineClock:
@@ -101,8 +105,11 @@ class Keyboard:
 
 
 def build_controller(policy_path: str | Path, reference, cfg: ControllerCfg) -> Controller:
+    """The controller of ``policy_path`` on ``reference``; a policy that reads what ``cfg``'s
+    sources (motion capture) cannot give is refused (``PolicySpecError`` naming terms and flags)."""
     spec = PolicySpec.from_onnx(policy_path)
-    builder = ObservationBuilder(spec, reference)
+    sources = frozenset({MOCAP}) if cfg.mocap_names is not None else frozenset()
+    builder = ObservationBuilder(spec, reference, sources)
     return Controller(spec, builder, OnnxPolicy(policy_path, spec), cfg)
 
 
@@ -115,12 +122,14 @@ def _controller_cfg_dict(cfg: ControllerCfg) -> dict:
 def _controller_cfg_from_dict(d: dict) -> ControllerCfg:
     # logs written before the hold → track blend and the end hold had neither: replay them without
     safety = {"blend_s": 0.0, "end_hold_s": 0.0, **d["safety"]}
-    return ControllerCfg(safety=SafetyCfg(**safety), auto_start=d["auto_start"], duration_s=d["duration_s"])
+    return ControllerCfg(safety=SafetyCfg(**safety), auto_start=d["auto_start"], duration_s=d["duration_s"],
+                         mocap_names=d.get("mocap_names"))
 
 
 class Runner:
     def __init__(self, controller: Controller, policy_path: Path, reference: str, domain_id: int,
-                 interface: str | None, damp_s: float, spin_us: float, wait_timeout_s: float):
+                 interface: str | None, damp_s: float, spin_us: float, wait_timeout_s: float,
+                 mocap_topic: str | None = None):
         self.controller, self.damp_s, self.wait_timeout_s = controller, damp_s, wait_timeout_s
         self.period_ns = int(round(controller.spec.policy_dt * NS))
         self.spin_ns = int(spin_us * 1000)
@@ -132,12 +141,16 @@ class Runner:
             "host": platform.node(), "cpus": os.cpu_count(), "python": platform.python_version(),
             "started_at": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         }
-        self.log = CycleLog(controller.spec.observation_dim, self.meta)
+        if mocap_topic is not None:
+            self.meta["mocap"] = {"topic": mocap_topic}
+        self.log = CycleLog(controller.spec.observation_dim, self.meta, controller.mocap)
         from agents.deploy.dds import G1Domain
 
         self.dds = G1Domain(domain_id, interface)
         self.reader = self.dds.latest_reader(self.dds.lowstate_topic)
         self.writer = self.dds.writer(self.dds.lowcmd_topic)
+        self.mocap_reader = (None if mocap_topic is None or controller.mocap is None
+                             else self.dds.latest_reader(self.dds.mocap_topic(mocap_topic)))
         self._sigints = 0
 
     def _on_sigint(self, *_) -> None:
@@ -160,9 +173,11 @@ class Runner:
                     deadline, wake = clock.wait()
                     t_s = wake / NS
                     msg = take_latest(self.reader)
+                    mocap = None if self.mocap_reader is None else take_latest(self.mocap_reader)
                     keys = keyboard.keys() | (KEY_STOP if self._sigints else 0)
                     inp = CycleInput(t_s=t_s, state=None if msg is None else robot_state(msg),
-                                     crc_ok=True if msg is None else crc.crc_ok(msg), keys=keys)
+                                     crc_ok=True if msg is None else crc.crc_ok(msg), keys=keys,
+                                     mocap=None if mocap is None else mocap_frame(mocap))
                     stage_before = c.stage
                     out = c.step(inp)
                     if out.command is not None:
@@ -172,6 +187,8 @@ class Runner:
                     if out.stage != stage_before:
                         print(f"[{t_s:7.2f} s] {stage_before.name} -> {out.stage.name} "
                               f"({c.stages.transitions[-1].reason})", flush=True)
+                        if out.stage == Stage.DAMP and c.fault_detail:
+                            print(f"otr deploy: {c.fault_detail}", file=sys.stderr, flush=True)
                     if out.stage == Stage.DAMP:
                         damp_since = t_s if damp_since is None else damp_since
                         if t_s - damp_since >= self.damp_s:
@@ -252,6 +269,13 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="run the loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling; default: %(default)s)")
     p.add_argument("--wait-timeout", type=float, default=30.0,
                    help="give up when no LowState arrives in this time (s; default: %(default)s)")
+    p.add_argument("--mocap", nargs="?", const=TOPIC_MOCAP, default=None, metavar="TOPIC",
+                   help="subscribe to a motion-capture pose stream (agents/deploy/idl/otr_mocap.idl; default topic "
+                        f"{TOPIC_MOCAP}): it feeds the observation terms that need the robot's world pose or the "
+                        "objects' and is logged (otr sim-robot --publish-mocap publishes one)")
+    p.add_argument("--mocap-name", action="append", default=None, metavar="POLICY=STREAM",
+                   help="the stream's name of a body the reference names otherwise (e.g. largebox=box_1; the "
+                        "robot's base is 'pelvis')")
     p.add_argument("--replay", type=Path, default=None,
                    help="re-run this log offline through the same controller and compare the actions")
 
@@ -292,10 +316,11 @@ def main(args: argparse.Namespace) -> int:
         safety = SafetyCfg(stale_cycles=args.stale_cycles, tilt_limit_rad=float(np.radians(args.tilt_limit)),
                            soft_limit_factor=args.soft_limit_factor, ramp_s=args.ramp, blend_s=args.blend,
                            end_hold_s=args.end_hold)
-        cfg = ControllerCfg(safety=safety, auto_start=args.auto_start, duration_s=args.duration)
+        cfg = ControllerCfg(safety=safety, auto_start=args.auto_start, duration_s=args.duration,
+                            mocap_names=None if args.mocap is None else name_map(args.mocap_name))
         controller = build_controller(args.policy, reference, cfg)
         runner = Runner(controller, args.policy, reference, args.domain_id, args.interface, args.damp_s, args.spin_us,
-                        args.wait_timeout)
+                        args.wait_timeout, args.mocap)
         if args.rt_priority:
             set_realtime_priority(args.rt_priority)  # after the DDS threads exist: only this loop is real-time
             runner.log.meta["rt_priority"] = args.rt_priority
@@ -312,10 +337,12 @@ def main(args: argparse.Namespace) -> int:
     try:
         status = runner.run()
     finally:
+        if controller.fault_detail:
+            runner.log.meta["fault_detail"] = controller.fault_detail
         runner.log.save(log_path, controller.stages.transitions)
         print(f"log: {log_path} ({runner.log.n} cycles)")
     reason = controller.stages.damp_reason
-    if reason in ("stale_state", "bad_crc", "nan_state", "nan_action", "tilt", "estop") and status == 0:
+    if reason in ("stale_state", "bad_crc", "nan_state", "nan_action", "tilt", "estop", *MOCAP_FAULTS) and status == 0:
         status = 1
     print(f"deploy: ended in {controller.stage.name}" + (f" ({reason})" if reason else ""))
     return status

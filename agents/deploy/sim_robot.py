@@ -28,6 +28,10 @@ boxes, the nominal mass and friction of ``configs/env/box.yaml``, moving objects
 ones fixed), each at its pose on the reference's first frame; ``--stats`` and ``--trace`` record
 their poses, and the stats say how far each moving object ended from the reference's last frame.
 
+Motion capture: ``--publish-mocap [TOPIC]`` publishes what a marker system would see (the pelvis
+and every object, ``SimRobot.capture``) at ``--mocap-rate`` Hz, ``--mocap-latency-ms`` late and with
+``--mocap-noise-m`` of position noise (``agents.deploy.mocap``), for ``otr deploy --mocap``.
+
 The loop keeps real time on absolute deadlines; ``--stats`` writes what happened (commands
 accepted and dropped, real-time factor, step timing, whether the robot stayed upright).
 """
@@ -39,6 +43,7 @@ import json
 import signal
 import sys
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,6 +58,7 @@ from agents.deploy.messages import (
     MotorState_,
     joint_command,
 )
+from agents.deploy.mocap import BASE_BODY, TOPIC_MOCAP, MocapFrame, mocap_message, now_ns
 from agents.deploy.safety import STARTUP_KD
 from otr_gym import robot
 from otr_gym.io import save_npz, write_json
@@ -137,6 +143,8 @@ class SimRobot:
         # the moving objects (free joints after the robot's) at their first-frame poses, turned
         # with the robot about its root by --yaw: the scene keeps its layout around the robot
         self.moving = tuple(o for o in (objects.objects if objects is not None else ()) if not o.static)
+        self._static_bodies = tuple((o.name, self.model.body(o.body).id)
+                                    for o in (objects.objects if objects is not None else ()) if o.static)
         self._object_qpos = [int(self.model.jnt_qposadr[self.model.body(o.body).jntadr[0]]) for o in self.moving]
         #: name -> (7,) the reference's last-frame pose of a moving object (set by ``main``)
         self.object_goals: dict[str, np.ndarray] = {}
@@ -200,6 +208,14 @@ class SimRobot:
         """(M, 7) the moving objects' poses: position (m, world) and quaternion (wxyz)."""
         return np.array([self.data.qpos[a: a + 7] for a in self._object_qpos]).reshape(-1, 7)
 
+    def capture(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """What a motion-capture system sees: the names and (B, 7) poses (m, wxyz; world) of the
+        pelvis (``mocap.BASE_BODY``), the moving objects and the static ones."""
+        poses = [self.data.qpos[:7].copy(), *self.object_poses()]
+        poses += [np.concatenate([self.data.xpos[b], self.data.xquat[b]]) for _, b in self._static_bodies]
+        names = (BASE_BODY, *(o.name for o in self.moving), *(n for n, _ in self._static_bodies))
+        return names, np.array(poses).reshape(-1, 7)
+
     def pelvis_height(self) -> float:
         return float(self.data.xpos[self._pelvis, 2])
 
@@ -241,15 +257,56 @@ class BridgeStats:
     first_damping_wall_s: float | None = None  # first accepted command with kp = 0 everywhere
 
 
+@dataclass
+class MocapPublisherCfg:
+    topic: str = TOPIC_MOCAP
+    rate_hz: float = 100.0  # captures per second (a marker system's 100-360 Hz)
+    latency_ms: float = 0.0  # capture to publication
+    noise_m: float = 0.0  # Gaussian position noise per axis (m, standard deviation)
+    seed: int = 0
+
+
+class MocapPublisher:
+    """``SimRobot.capture`` as a motion-capture stream: a capture every 1/``rate_hz`` of simulated
+    time, stamped with the wall clock (``mocap.now_ns``), published ``latency_ms`` later with
+    ``noise_m`` of position noise."""
+
+    def __init__(self, sim: SimRobot, dds, cfg: MocapPublisherCfg):
+        self.sim, self.cfg = sim, cfg
+        self.writer = dds.writer(dds.mocap_topic(cfg.topic))
+        self.every = max(1, int(round(sim.cfg.physics_hz / cfg.rate_hz)))
+        self.pending: deque[MocapFrame] = deque()
+        self.rng = np.random.default_rng(cfg.seed)
+        self.seq = 0
+        self.published = 0
+
+    def step(self, tick: int) -> None:
+        """At the physics loop's iteration ``tick``: capture when due, publish what is old enough."""
+        now = now_ns()
+        if tick % self.every == 0:
+            names, poses = self.sim.capture()
+            pos = poses[:, :3] + (self.rng.normal(0.0, self.cfg.noise_m, poses[:, :3].shape) if self.cfg.noise_m
+                                  else 0.0)
+            self.seq += 1
+            self.pending.append(MocapFrame(now, self.seq, names, pos, poses[:, 3:]))
+        due = None
+        while self.pending and now - self.pending[0].stamp_ns >= self.cfg.latency_ms * 1e6:
+            due = self.pending.popleft()
+        if due is not None:
+            self.writer.write(mocap_message(due))
+            self.published += 1
+
+
 class Bridge:
     """``SimRobot`` on DDS: runs until ``duration_s`` (wall) or a signal."""
 
     def __init__(self, sim: SimRobot, domain_id: int, interface: str | None, mute_after_s: float | None = None,
-                 idle_exit_s: float | None = None):
+                 idle_exit_s: float | None = None, mocap: MocapPublisherCfg | None = None):
         from agents.deploy.dds import G1Domain
 
         self.sim = sim
         self.dds = G1Domain(domain_id, interface)
+        self.mocap = None if mocap is None else MocapPublisher(sim, self.dds, mocap)
         self.writer = self.dds.writer(self.dds.lowstate_topic)
         self.reader = self.dds.latest_reader(self.dds.lowcmd_topic)
         self.mute_after_s, self.idle_exit_s = mute_after_s, idle_exit_s
@@ -288,6 +345,7 @@ class Bridge:
         trace_every = max(1, int(round(sim.cfg.physics_hz / 50.0)))
         t0 = time.perf_counter_ns()
         deadline = t0
+        ticks = 0  # loop iterations at the physics rate (the sim is frozen until the first LowCmd)
         while not self._stop:
             now = time.perf_counter_ns()
             if now < deadline:
@@ -304,6 +362,9 @@ class Bridge:
             if self.command is not None or sim.cfg.gantry:
                 sim.step(self.command if self.command is not None else DEBUG_MODE_DAMPING)
                 self.stats.steps += 1
+            if self.mocap is not None:
+                self.mocap.step(ticks)
+            ticks += 1
             if self.mute_after_s is None or first is None or wall_s - first < self.mute_after_s:
                 self.writer.write(sim.low_state())
                 self.stats.published += 1
@@ -348,6 +409,7 @@ class Bridge:
             "upright": bool(self.min_pelvis_z > UPRIGHT_MIN_PELVIS_Z and self.max_tilt < UPRIGHT_MAX_TILT),
             "last_command_kp_mean": float(self.command.kp.mean()) if self.command is not None else None,
             "objects": object_summary(self.sim, np.array(self.trace["object_pose"])) if self.sim.moving else {},
+            "mocap_published": None if self.mocap is None else self.mocap.published,
         }
 
 
@@ -457,6 +519,15 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rt-priority", type=int, default=0,
                    help="run the physics loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling; "
                         "default: %(default)s)")
+    p.add_argument("--publish-mocap", nargs="?", const=TOPIC_MOCAP, default=None, metavar="TOPIC",
+                   help="publish a motion-capture stream of the pelvis and the objects (agents/deploy/idl/"
+                        f"otr_mocap.idl; default topic {TOPIC_MOCAP}) for `otr deploy --mocap`")
+    p.add_argument("--mocap-rate", type=float, default=MocapPublisherCfg.rate_hz,
+                   help="captures per second (Hz; default: %(default)s)")
+    p.add_argument("--mocap-latency-ms", type=float, default=MocapPublisherCfg.latency_ms,
+                   help="delay from capture to publication (ms; default: %(default)s)")
+    p.add_argument("--mocap-noise-m", type=float, default=MocapPublisherCfg.noise_m,
+                   help="Gaussian noise on captured positions, per axis (m; default: %(default)s)")
     p.add_argument("--stats", type=Path, default=None, help="write a JSON summary here at exit")
     p.add_argument("--trace", type=Path, default=None, help="write the 50 Hz ground truth (qpos, gains) .npz here")
 
@@ -474,7 +545,12 @@ def main(args: argparse.Namespace) -> int:
                                    yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference),
                        None if args.terrain is None else sim_terrain(args.terrain, args.reference), objects, condim)
         sim.object_goals = goals if not args.yaw else {}  # a turned scene has no goal in the reference's frame
-        bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after, args.idle_exit)
+        if args.mocap_rate <= 0 or args.mocap_latency_ms < 0 or args.mocap_noise_m < 0:
+            raise ValueError(f"--mocap-rate {args.mocap_rate:g} must be > 0, --mocap-latency-ms "
+                             f"{args.mocap_latency_ms:g} and --mocap-noise-m {args.mocap_noise_m:g} >= 0")
+        mocap = None if args.publish_mocap is None else MocapPublisherCfg(
+            args.publish_mocap, args.mocap_rate, args.mocap_latency_ms, args.mocap_noise_m)
+        bridge = Bridge(sim, args.domain_id, args.interface, args.mute_after, args.idle_exit, mocap)
         if args.rt_priority:
             from agents.deploy.runner import set_realtime_priority
 
@@ -486,8 +562,9 @@ def main(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, bridge.stop)
     print(f"sim-robot: G1 on domain {args.domain_id}, interface {args.interface}, {args.physics_hz:g} Hz physics"
           f"{', gantry' if args.gantry else ', frozen until the first LowCmd'}"
-          + "".join(f", {o.name} ({o.method}, {o.mass_kg:g} kg, friction {o.friction:g})" for o in sim.moving),
-          flush=True)
+          + "".join(f", {o.name} ({o.method}, {o.mass_kg:g} kg, friction {o.friction:g})" for o in sim.moving)
+          + (f", mocap on {mocap.topic} ({mocap.rate_hz:g} Hz, {mocap.latency_ms:g} ms, {mocap.noise_m:g} m)"
+             if mocap is not None else ""), flush=True)
     bridge.run(args.duration)
     summary = bridge.summary()
     if args.stats:

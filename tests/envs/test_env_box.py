@@ -50,10 +50,10 @@ def test_box_yaml_lists_exactly_the_dataclass_defaults():
 
 
 def test_the_default_actor_observes_nothing_a_g1_does_not_measure_and_mocap_is_one_name_away():
-    from agents.deploy.observation import UNOBSERVABLE_TERMS
+    from agents.deploy.observation import TERM_SOURCES
 
     default = [(t.fn, t.noise) for t in BoxEnvCfg().observations.policy]
-    assert not [fn for fn, _ in default if fn in UNOBSERVABLE_TERMS]
+    assert not [fn for fn, _ in default if fn in TERM_SOURCES]
     assert [fn for fn, _ in default][-2:] == ["object_command", "contact_schedule"]
     # the motion-capture actor, the default before 2026-12-07: §3 MJ's actor with state estimation
     # and the object's pose

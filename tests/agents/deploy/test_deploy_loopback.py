@@ -228,3 +228,40 @@ def test_a_box_actor_runs_over_dds_against_a_sim_robot_that_simulates_the_box(tm
     np.testing.assert_allclose(box["start"][:3], [0.6, 0.0, 0.1], atol=1e-6)
     assert abs(box["end"][2] - 0.1) < 0.01 and box["end_error_m"] > 0.5  # on the floor, not on the table
     assert stats["upright"], stats
+
+
+def test_a_mocap_box_actor_is_refused_without_a_stream_and_tracks_with_the_sim_robots(tmp_path, box_reference,
+                                                                                       capsys):
+    """OTR-G1-BoxTrack-v0's ``mocap`` actor (the robot's world position, the box's pose): refused
+    without ``--mocap``, naming the terms and the flag; with the sim robot publishing a stream
+    (10 ms late, 1 mm of noise) it tracks the whole clip, the log records the box as captured, a
+    replay reproduces the actions (the observation depends on the captured poses) and
+    ``otr inspect`` reports where the box ended."""
+    meta = training_metadata(box_reference, "OTR-G1-BoxTrack-v0", {"observations": {"actor": "mocap"}})
+    meta["joint_stiffness"], meta["joint_damping"] = STARTUP_KP.tolist(), STARTUP_KD.tolist()
+    policy = feedback_policy(meta, tmp_path / "mocap_box.onnx", gain=0.02)
+    rc, out = finish(otr("deploy", "--policy", str(policy), "--reference", str(box_reference), "--interface", "lo",
+                         "--domain-id", str(domain_id(8))), 60)
+    assert rc == 2 and "anchor_pos_b, base_lin_vel_b, object_pos_b" in out and "--mocap TOPIC" in out, out
+    topic = "rt/test/mocap"
+    rc, out, log, stats = sim2sim(
+        tmp_path, policy, box_reference, domain_id(9), sim_s=60.0,
+        sim_args=("--publish-mocap", topic, "--mocap-latency-ms", "10", "--mocap-noise-m", "0.001"),
+        deploy_args=("--mocap", topic, "--blend", "0.2", "--end-hold", "0.2"))
+    assert rc == 0, out
+    a = log.arrays
+    track = a["stage"] == Stage.TRACK
+    assert a["frame"][track].max() == 150 and stats["upright"], stats  # the whole clip
+    assert log.meta["mocap"]["bodies"] == ["pelvis", "box"] and a["mocap_fresh"][track].mean() > 0.9
+    # the captured box is the simulated one: it stays on the floor where it started
+    box = stats["objects"]["box"]
+    last = np.flatnonzero(a["mocap_fresh"])[-1]
+    np.testing.assert_allclose(a["mocap_pos"][last, 1], box["end"][:3], atol=0.01)
+    assert abs(a["object_error_m"][last, 0] - box["end_error_m"]) < 0.02
+    assert stats["mocap_published"] > 0
+    replayed = cli.main(["deploy", "--replay", str(log.path)])
+    assert replayed == 0, capsys.readouterr().out
+    capsys.readouterr()
+    assert cli.main(["inspect", str(log.path)]) == 0
+    text = capsys.readouterr().out
+    assert f"{topic}: " in text and "box" in text and "from the reference's last frame" in text

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from agents.deploy.messages import RobotState
-from agents.deploy.observation import ObservationBuilder, PolicySpec, PolicySpecError
+from agents.deploy.observation import ESTIMATOR, MOCAP, ObservationBuilder, PolicySpec, PolicySpecError
 from agents.deploy.reference_policy import training_metadata, write_reference_policy
 from envs.tracking import make_task
 from otr_gym import robot
@@ -41,10 +41,15 @@ def test_observation_equals_the_training_envs_from_the_lowstate_alone(walking_re
     assert frame == 12  # the env's target frame = the runner's (start 0 + 1 + steps)
 
 
-def test_terms_the_robot_cannot_measure_are_refused_by_name(meta):
-    bad = dict(meta, observation_layout=[*meta["observation_layout"], {"name": "anchor_pos_b", "dim": 3, "start": 154}])
-    with pytest.raises(PolicySpecError, match="anchor_pos_b.*world position"):
-        PolicySpec.from_metadata(bad, "p.onnx")
+def test_terms_the_robot_cannot_measure_are_refused_by_name_with_the_flag_that_feeds_them(meta, walking_reference):
+    layout = [*meta["observation_layout"], {"name": "anchor_pos_b", "dim": 3, "start": 154}]
+    spec = PolicySpec.from_metadata(dict(meta, observation_layout=layout), "p.onnx")
+    with pytest.raises(PolicySpecError, match="anchor_pos_b need the robot's world position.*--mocap TOPIC"):
+        ObservationBuilder(spec, walking_reference)
+    ObservationBuilder(spec, walking_reference, frozenset({MOCAP}))  # a source: accepted
+    forces = [*meta["observation_layout"], {"name": "object_contact_forces", "dim": 6, "start": 154}]
+    with pytest.raises(PolicySpecError, match="object_contact_forces.*no deployment measures"):
+        PolicySpec.from_metadata(dict(meta, observation_layout=forces), "p.onnx")
 
 
 def test_metadata_with_another_joint_order_or_missing_fields_is_refused(meta):
@@ -106,11 +111,12 @@ def test_the_perception_free_box_actor_is_rebuilt_from_the_lowstate_and_the_refe
     assert builder.objects.hand_gate.max() == 1.0
 
 
-def test_a_box_actor_that_observes_the_object_pose_is_refused_by_name(box_reference):
+def test_a_box_actor_that_observes_the_object_pose_is_refused_without_motion_capture(box_reference):
     meta = training_metadata(box_reference, "OTR-G1-BoxTrack-v0", {"observations": {"actor": "mocap"}})
-    with pytest.raises(PolicySpecError, match="anchor_pos_b.*world position"):
-        PolicySpec.from_metadata(meta, "box.onnx")
-    without_anchor = dict(meta, observation_layout=[t for t in meta["observation_layout"]
-                                                    if t["name"] not in ("anchor_pos_b", "base_lin_vel_b")])
-    with pytest.raises(PolicySpecError, match="object_pos_b.*object's pose"):
-        PolicySpec.from_metadata(without_anchor, "box.onnx")
+    spec = PolicySpec.from_metadata(meta, "box.onnx")
+    with pytest.raises(PolicySpecError, match="anchor_pos_b, base_lin_vel_b, object_pos_b, object_ori_b, "
+                                              "static_object_pos_b, static_object_ori_b need .*object's pose.*"
+                                              "--mocap TOPIC"):
+        ObservationBuilder(spec, box_reference)
+    with pytest.raises(PolicySpecError, match="object_pos_b, object_ori_b need the object's pose.*run with --mocap"):
+        ObservationBuilder(spec, box_reference, frozenset({ESTIMATOR}))  # the robot's pose only
