@@ -2,7 +2,9 @@
 
 Every input becomes ``OUT/<name>.npz`` (folder inputs keep their sub-folders). A failing clip
 is a 'failed' result naming its file, never an exception, so a batch goes on; outputs are
-written atomically, so an existing file is complete and a batch resumes by skipping it.
+written atomically, so an existing file is complete and a batch resumes by skipping it. A
+skipped clip keeps the figures its earlier run recorded (``skipped_result``), so the summary
+of a resumed batch still describes every clip and the clip list filters all of them.
 """
 
 from __future__ import annotations
@@ -71,7 +73,31 @@ class ClipResult:
     flagged_share: float | None = None
     #: frames over each limit, the peaks and the one-line verdict (``FeasibilityReport.brief``)
     feasibility: dict | None = None
+    #: the contacts as the solve left them (``contact_figures``): penetration, contact shares
+    fidelity: dict | None = None
 
+
+def contact_figures(reference) -> dict:
+    """The clip's contacts as the solve already measured them (no extra evaluation):
+
+    * ``min_distance_m``: the smallest signed distance of any robot probe or guard to a
+      collidable channel (ground, objects) over the clip; negative is penetration;
+    * ``penetration_m``: max(0, −min_distance_m);
+    * ``min_self_distance_m``: the smallest distance between links that must not touch;
+    * ``qp_failures``: QPs whose rows conflicted and were re-solved in elastic mode;
+    * ``contact_share``: per channel, the share of frames in which some G1 contact unit is within
+      20 mm of it (``ContactAnnotations.in_contact``, the evaluation's ε): 0 on an object the
+      demonstration carries means the robot never touched it.
+
+    A distance the solver never measured (no collidable pair) is None: JSON has no infinity."""
+    solver = reference.metadata["solver"]
+    finite = {key: float(solver[key]) if np.isfinite(solver[key]) else None
+              for key in ("min_distance_m", "min_self_distance_m")}
+    touching = reference.contacts.in_contact().any(axis=1)  # (T, C)
+    return {**finite, "penetration_m": max(0.0, -(finite["min_distance_m"] or 0.0)),
+            "qp_failures": int(solver["qp_failures"]),
+            "contact_share": {name: float(touching[:, c].mean())
+                              for c, name in enumerate(reference.contacts.channel_names)}}
 
 def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
@@ -113,24 +139,74 @@ def retarget_bytes(job: Job, task: Task, frame_bar: bool = False) -> tuple[ClipR
                    f"{100 * feasibility.flagged_share():.1f} % of frames over a feasibility limit)")
         return ClipResult(str(job.source), str(job.output), "done", message, timing.frames, timing.ms_per_frame,
                           time.perf_counter() - start, worker_name(), feasibility.flagged_share(),
-                          feasibility.brief()), data
+                          feasibility.brief(), contact_figures(reference)), data
     except Exception as exc:  # one clip's failure must not stop the batch
         detail = "" if isinstance(exc, (ValueError, FileNotFoundError)) else "\n" + traceback.format_exc()
         return ClipResult(str(job.source), str(job.output), "failed", f"{job.source}: {type(exc).__name__}: {exc}"
                           f"{detail}", seconds=time.perf_counter() - start, worker=worker_name()), None
 
-def run_job(job: Job, task: Task, frame_bar: bool = False) -> ClipResult:
-    """Retarget one file and write its reference atomically (the serial and process-pool path)."""
-    result, data = retarget_bytes(job, task, frame_bar)
-    if data is not None:
-        from otr_gym.io import atomic_write
+def write_output(job: Job, result: ClipResult, data: bytes | None) -> ClipResult:
+    """Write a clip's reference atomically; a write that fails (disk full, no permission) makes
+    the clip 'failed', naming the output file and the error."""
+    if data is None:
+        return result
+    from otr_gym.io import atomic_write
 
+    try:
         atomic_write(job.output, lambda f: f.write(data))
+    except OSError as exc:
+        return dataclasses.replace(result, status="failed",
+                                   message=f"{job.source}: could not write {job.output}: {exc}")
     return result
+
+def run_job(job: Job, task: Task, frame_bar: bool = False) -> ClipResult:
+    """Retarget one file and write its reference (the serial and process-pool path)."""
+    return write_output(job, *retarget_bytes(job, task, frame_bar))
+
+def lost_result(job: Job, why: str) -> ClipResult:
+    """The 'failed' result of a clip that gave no result at all (its worker died, its task errored)."""
+    return ClipResult(str(job.source), str(job.output), "failed", f"{job.source}: {why}")
+
+def skipped_result(job: Job, earlier: dict | None) -> ClipResult:
+    """A clip whose output exists: its figures from the summary that wrote it (``earlier``: that
+    record), else measured on the output file itself (``check_feasibility``, ~0.5 s). An output
+    that cannot be read is 'failed', naming the file and the problem (``--overwrite`` redoes it)."""
+    if earlier is not None and earlier.get("feasibility") and earlier.get("fidelity"):
+        return ClipResult(str(job.source), str(job.output), "skipped", "output exists", earlier.get("frames"),
+                          earlier.get("ms_per_frame"), earlier.get("seconds"), earlier.get("worker") or "",
+                          earlier["flagged_share"], earlier["feasibility"], earlier["fidelity"])
+    from otr_gym.reference import InvalidReferenceError, Reference
+    from retarget.checks.feasibility import check_feasibility
+
+    try:
+        reference = Reference.load(job.output)
+        feasibility = check_feasibility(reference)
+        fidelity = contact_figures(reference)
+    except (InvalidReferenceError, KeyError, AttributeError) as exc:  # not ours: no solver metadata, no contacts
+        return ClipResult(str(job.source), str(job.output), "failed",
+                          f"{job.source}: its output {job.output} exists but cannot be read "
+                          f"({type(exc).__name__}: {exc}); --overwrite redoes it")
+    return ClipResult(str(job.source), str(job.output), "skipped", "output exists (figures measured on it)",
+                      reference.num_frames, flagged_share=feasibility.flagged_share(),
+                      feasibility=feasibility.brief(), fidelity=fidelity)
+
+def earlier_records(summary_path: Path) -> dict[Path, dict]:
+    """The records of an earlier ``retarget_summary.json`` by output file (resolved); {} when
+    there is none or it is unreadable (a skipped clip then measures its output)."""
+    import json
+
+    try:
+        results = json.loads(summary_path.read_text())["results"]
+        return {Path(r["output"]).resolve(): r for r in results}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
 
 SUMMARY_NAME = "retarget_summary.json"
 
 def summary(results: list[ClipResult], executor: str, seconds: float) -> dict:
+    """``retarget_summary.json``: counts, this run's throughput (clips retargeted per minute of
+    wall time), and every clip's record; ``feasible`` counts the clips of this run with no frame
+    over a feasibility limit."""
     done = [r for r in results if r.status == "done"]
     frames = sum(r.frames or 0 for r in done)
     return {"executor": executor, "wall_s": seconds, "clips": len(results),
@@ -141,9 +217,24 @@ def summary(results: list[ClipResult], executor: str, seconds: float) -> dict:
             "results": [dataclasses.asdict(r) for r in results]}
 
 
-def report(bar, result: ClipResult) -> None:
+def progress_bar(total: int):
+    """The batch's bar: clips finished of ``total``, the time so far, tqdm's ETA and clips
+    retargeted per minute (``report`` updates it), whichever executor runs them."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="retarget", unit="clip",
+                bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} clips "
+                           "[{elapsed} elapsed, ETA {remaining}{postfix}]")
+
+
+def report(bar, result: ClipResult, retargeted: int) -> None:
+    """Print one clip's line above the bar and move the bar; ``retargeted``: clips done so far
+    (failures take no solve: counting them would inflate the rate)."""
     if result.status == "failed":
         bar.write(f"failed: {result.message.splitlines()[0]}")
     else:
         bar.write(f"wrote {result.message}")
+    elapsed_s = bar.format_dict["elapsed"]
+    if retargeted and elapsed_s > 0:
+        bar.set_postfix_str(f"{60.0 * retargeted / elapsed_s:.1f} clips/min", refresh=False)
     bar.update(1)
