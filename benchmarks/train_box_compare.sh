@@ -5,6 +5,8 @@
 #   holo           Holosoma's reference of the same clip ($IN/sub3_largebox_003_mj_w_obj.npz, mesh $IN/largebox.obj)
 #   no_contact     ours, ABLATION=no_contact      no_object_vel   ours, ABLATION=no_object_vel
 #   demo           the `otr demo` box carry ($IN/demo_box_carry.npz)
+#   mocap          ours with the privileged actor (env.observations.actor=mocap: object pose and the
+#                  robot's world position observed) — the default actor is perception-free
 #
 #   benchmarks/train_box_compare.sh TOTAL_MINUTES TRAIN_DEADLINE_S [report [REPORT_DEADLINE_S]]
 #
@@ -30,10 +32,11 @@ IN=${IN:-out/b5in}
 export DEVICE=${DEVICE:-cuda} PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-3} NUM_ENVS=${NUM_ENVS:-4096} SEED=42
 JOBS=${JOBS:-ours holo no_contact no_object_vel demo}
 OURS_REF=${OURS_REF:-out/refs2/sub3_largebox_003.npz}
-declare -A REF=([ours]=$OURS_REF [no_contact]=$OURS_REF [no_object_vel]=$OURS_REF
+declare -A REF=([ours]=$OURS_REF [no_contact]=$OURS_REF [no_object_vel]=$OURS_REF [mocap]=$OURS_REF
                 [holo]=$IN/sub3_largebox_003_mj_w_obj.npz
                 [demo]=$IN/demo_box_carry.npz)
 declare -A ABL=([no_contact]=no_contact [no_object_vel]=no_object_vel)
+declare -A SET=([mocap]=env.observations.actor=mocap)
 nvidia-smi --query-gpu=name,memory.total --format=csv,noheader 2>/dev/null; date -u
 
 descendants() {  # pids below $1 (recursive)
@@ -57,7 +60,7 @@ for j in $JOBS; do
   m=$(python3 -c "import sys; print(round(max(0.25, float(sys.argv[1]) - float(sys.argv[2])), 2))" "$total" "$(learned $j)")
   echo "$j: MINUTES=$m (learned so far $(learned $j))"
   if [ "$m" != "0.25" ] || [ ! -f runs/b5/$j/LATEST_RUN ]; then
-    ( env ABLATION=${ABL[$j]:-none} \
+    ( env ABLATION=${ABL[$j]:-none} SETS="${SET[$j]:-}" \
         $( [ $j = holo ] && echo OBJECT_MESH=largebox=$IN/largebox.obj ) \
         MINUTES=$m RUNS_DIR=runs/b5/$j benchmarks/train_box.sh train out/b5/$j "${REF[$j]}" \
         > /tmp/b5.$j.$t0.log 2>&1 ) &
