@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents.deploy import safety
+from agents.deploy.estimator import BaseStateEstimator
 from agents.deploy.messages import REMOTE_KEYS, JointCommand, RobotState
 from agents.deploy.mocap import BASE_BODY, MocapFrame, MocapTracker, MocapTrackerCfg
 from agents.deploy.observation import BaseEstimate, ObjectEstimate, ObservationBuilder, PolicySpec, torso_tilt_rad
@@ -48,6 +49,7 @@ class CycleOutput:
     #: (M,) m: each moving object's captured position from the aligned reference's (the frame the
     #: robot should be on; its last frame after tracking), once tracking has begun
     object_error_m: np.ndarray | None = None
+    base: BaseEstimate | None = None  # the pelvis as the policy saw it (motion capture or the estimator)
 
 
 @dataclass
@@ -57,6 +59,9 @@ class ControllerCfg:
     duration_s: float | None = None  # stop tracking after this long
     #: motion capture (``--mocap``): reference body name -> stream name where they differ; None: no mocap
     mocap_names: dict[str, str] | None = None
+    #: the base state estimator (``--state-estimator``, ``agents.deploy.estimator``) gives the
+    #: robot's world position and velocity while tracking, where motion capture does not
+    state_estimator: bool = False
 
 
 Policy = Callable[[np.ndarray], np.ndarray]  # (D,) float32 -> (29,)
@@ -90,6 +95,9 @@ class Controller:
         self.fault_detail = ""  # the message of a damping fault that has more to say than its reason
         self.mocap = None if cfg.mocap_names is None else MocapTracker(self.mocap_cfg(builder, cfg))
         self._tracked = False  # tracking has begun (the clip is aligned to the robot)
+        self.estimator = BaseStateEstimator() if cfg.state_estimator else None
+        self._estimate: BaseEstimate | None = None  # the estimator's latest, while tracking
+        self._estimated_at = 0.0
 
     @staticmethod
     def mocap_cfg(builder: ObservationBuilder, cfg: ControllerCfg) -> MocapTrackerCfg:
@@ -123,6 +131,9 @@ class Controller:
         self._ingest(inp)
         if self.mocap is not None:
             self.mocap.update(inp.mocap)
+        if self.estimator is not None and self._estimate is not None and inp.state is self.state:
+            pos, vel = self.estimator.update(self.state, inp.t_s - self._estimated_at)
+            self._estimate, self._estimated_at = BaseEstimate(pos, vel), inp.t_s
         keys = inp.keys
         if self.state is not None:
             remote = remote_keys_to_operator(self.state.remote_keys)
@@ -206,11 +217,14 @@ class Controller:
             self._start_tracking(t_s, reason)
 
     def _base(self) -> BaseEstimate | None:
-        """The pelvis as motion capture measures it, when the policy reads it."""
-        if self.mocap is None or not self.builder.needs_base:
+        """The pelvis as motion capture measures it or, without it, as the estimator estimates it,
+        when the policy reads it."""
+        if not self.builder.needs_base:
             return None
-        m = self.mocap.motion()
-        return None if m is None else BaseEstimate(m.pos_w[0], m.lin_vel_w[0], m.quat_wxyz[0])
+        if self.mocap is not None:
+            m = self.mocap.motion()
+            return None if m is None else BaseEstimate(m.pos_w[0], m.lin_vel_w[0], m.quat_wxyz[0])
+        return self._estimate
 
     def _objects(self) -> ObjectEstimate | None:
         """The moving objects as motion capture measures them, when the policy reads them."""
@@ -232,6 +246,11 @@ class Controller:
     def _start_tracking(self, t_s: float, reason: str) -> None:
         self.builder.align(*self.builder.alignment(self.state, self._base()))
         self._tracked = True
+        if self.estimator is not None and self.mocap is None:
+            # the robot stands on the clip's first frame: the estimate starts at its pelvis, at rest
+            pelvis = self.builder.ref_body_pos_w[0, self.builder.spec.body_names.index("pelvis")].double().numpy()
+            self.estimator.reset(pelvis, self.state.quat_wxyz, self.state.joint_pos)
+            self._estimate, self._estimated_at = BaseEstimate(pelvis, np.zeros(3)), t_s
         self.frame = 1  # the robot stands on frame 0; the observation shows the target frame 1
         self.last_action = np.zeros(robot.NUM_JOINTS)
         self._track_t0 = t_s
@@ -248,7 +267,8 @@ class Controller:
         if self.cfg.duration_s is not None and t_s - self._track_t0 >= self.cfg.duration_s:
             self._damp(DampReason.DURATION)
             return
-        s = self.builder.tracking_state(self.state, self.frame, self.last_action, self._base(), self._objects())
+        out.base = self._base()
+        s = self.builder.tracking_state(self.state, self.frame, self.last_action, out.base, self._objects())
         obs = self.builder.observation(s)
         raw = np.asarray(self.policy(obs), dtype=np.float64).reshape(-1)
         out.observation, out.action, out.frame = obs, raw, self.frame

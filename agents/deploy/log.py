@@ -19,6 +19,8 @@ Arrays (C cycles; NaN where a quantity did not exist that cycle, e.g. no action 
   frame carried the body), ``mocap_pos`` (C, B, 3) m and ``mocap_quat`` (C, B, 4) wxyz as
   captured, ``object_error_m`` (C, B − 1): each object's distance from the aligned reference's
   (``controller.CycleOutput.object_error_m``);
+- ``base_pos_w``, ``base_lin_vel_w`` (C, 3): the pelvis position (m) and velocity (m/s) the policy
+  saw, from motion capture or the state estimator (``--state-estimator``), while tracking;
 - ``transition_cycle``/``transition_from``/``transition_to``/``transition_reason``;
 - ``meta``: JSON (policy and reference paths with SHA-256, configuration, machine; the message of
   a fault that damped, ``fault_detail``).
@@ -90,6 +92,7 @@ class CycleLog:
             "mocap_fresh": ((), bool), "mocap_stamp_ns": ((), np.int64), "mocap_seq": ((), np.int64),
             "mocap_present": ((B,), bool), "mocap_pos": ((B, 3), np.float64), "mocap_quat": ((B, 4), np.float64),
             "object_error_m": ((max(B - 1, 0),), np.float64),
+            "base_pos_w": ((3,), np.float64), "base_lin_vel_w": ((3,), np.float64),
         }
         self._arrays = {k: self._empty(k, self.CHUNK) for k in self._shapes}
 
@@ -125,6 +128,8 @@ class CycleLog:
             a["mocap_present"][i] = [self.mocap.stream_name(b) in inp.mocap.names for b in self.mocap.cfg.bodies]
         if out.object_error_m is not None:
             a["object_error_m"][i] = out.object_error_m
+        if out.base is not None:
+            a["base_pos_w"][i], a["base_lin_vel_w"][i] = out.base.pos_w, out.base.lin_vel_w
         self.n += 1
 
     def save(self, path: str | Path, transitions: list[Transition]) -> Path:

@@ -109,7 +109,7 @@ class PolicySpec:
         unmet = {n: v for n, v in self.needs().items() if not set(v[1]) & sources}
         if not unmet:
             return
-        flags = sorted({f for _, srcs in unmet.values() for f in srcs})
+        flags = [f for f in SOURCE_FLAGS if any(f in srcs for _, srcs in unmet.values())]
         raise PolicySpecError(
             f"{self.source}: observation terms {', '.join(unmet)} need "
             f"{', '.join(dict.fromkeys(w for w, _ in unmet.values()))}, which the G1's low-level state does not "

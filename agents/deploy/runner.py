@@ -30,7 +30,7 @@ from agents.deploy.controller import KEY_ESTOP, KEY_START, KEY_STOP, Controller,
 from agents.deploy.log import NS, CycleLog, DeployLog, file_sha256, log_file
 from agents.deploy.messages import low_cmd, robot_state
 from agents.deploy.mocap import TOPIC_MOCAP, MocapFault, mocap_frame, name_map
-from agents.deploy.observation import MOCAP, ObservationBuilder, PolicySpec, PolicySpecError
+from agents.deploy.observation import ESTIMATOR, MOCAP, ObservationBuilder, PolicySpec, PolicySpecError
 from agents.deploy.onnx_policy import OnnxPolicy
 from agents.deploy.safety import SafetyCfg, Stage
 
@@ -108,7 +108,8 @@ def build_controller(policy_path: str | Path, reference, cfg: ControllerCfg) -> 
     """The controller of ``policy_path`` on ``reference``; a policy that reads what ``cfg``'s
     sources (motion capture) cannot give is refused (``PolicySpecError`` naming terms and flags)."""
     spec = PolicySpec.from_onnx(policy_path)
-    sources = frozenset({MOCAP}) if cfg.mocap_names is not None else frozenset()
+    sources = frozenset({MOCAP} if cfg.mocap_names is not None else set()) | (
+        frozenset({ESTIMATOR}) if cfg.state_estimator else frozenset())
     builder = ObservationBuilder(spec, reference, sources)
     return Controller(spec, builder, OnnxPolicy(policy_path, spec), cfg)
 
@@ -123,7 +124,7 @@ def _controller_cfg_from_dict(d: dict) -> ControllerCfg:
     # logs written before the hold → track blend and the end hold had neither: replay them without
     safety = {"blend_s": 0.0, "end_hold_s": 0.0, **d["safety"]}
     return ControllerCfg(safety=SafetyCfg(**safety), auto_start=d["auto_start"], duration_s=d["duration_s"],
-                         mocap_names=d.get("mocap_names"))
+                         mocap_names=d.get("mocap_names"), state_estimator=d.get("state_estimator", False))
 
 
 class Runner:
@@ -276,6 +277,9 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mocap-name", action="append", default=None, metavar="POLICY=STREAM",
                    help="the stream's name of a body the reference names otherwise (e.g. largebox=box_1; the "
                         "robot's base is 'pelvis')")
+    p.add_argument("--state-estimator", action="store_true",
+                   help="estimate the robot's world position and velocity from the IMU and the legs' kinematics "
+                        "(agents/deploy/estimator.py) for the terms that need them, where --mocap does not give them")
     p.add_argument("--replay", type=Path, default=None,
                    help="re-run this log offline through the same controller and compare the actions")
 
@@ -317,7 +321,8 @@ def main(args: argparse.Namespace) -> int:
                            soft_limit_factor=args.soft_limit_factor, ramp_s=args.ramp, blend_s=args.blend,
                            end_hold_s=args.end_hold)
         cfg = ControllerCfg(safety=safety, auto_start=args.auto_start, duration_s=args.duration,
-                            mocap_names=None if args.mocap is None else name_map(args.mocap_name))
+                            mocap_names=None if args.mocap is None else name_map(args.mocap_name),
+                            state_estimator=args.state_estimator)
         controller = build_controller(args.policy, reference, cfg)
         runner = Runner(controller, args.policy, reference, args.domain_id, args.interface, args.damp_s, args.spin_us,
                         args.wait_timeout, args.mocap)
