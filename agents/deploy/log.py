@@ -132,8 +132,11 @@ class CycleLog:
             a["base_pos_w"][i], a["base_lin_vel_w"][i] = out.base.pos_w, out.base.lin_vel_w
         self.n += 1
 
-    def save(self, path: str | Path, transitions: list[Transition]) -> Path:
-        """Write the log atomically to ``log_file(path)`` (``.npz`` appended when missing); returns where."""
+    def save(self, path: str | Path, transitions: list[Transition], fault_detail: str = "") -> Path:
+        """Write the log atomically to ``log_file(path)`` (``.npz`` appended when missing), with
+        the message of the fault that damped (``Controller.fault_detail``); returns where."""
+        if fault_detail:
+            self.meta["fault_detail"] = fault_detail
         arrays = {k: v[: self.n] for k, v in self._arrays.items()}
         arrays["transition_cycle"] = np.array([t.cycle for t in transitions], dtype=np.int64)
         arrays["transition_from"] = np.array([int(t.source) for t in transitions], dtype=np.int8)

@@ -224,3 +224,28 @@ def test_a_turned_capture_world_turns_the_clip_with_it(mocap_spec, box_reference
         m = frame(k, 0.02 * k, {"pelvis": ([0.0, 0.0, 0.75], turn), "box": ([0.0, 0.6, 0.1], quat_mul(turn, IDENTITY))})
         out = c.step(CycleInput(0.02 * k, state, mocap=m))
     assert out.stage == Stage.TRACK and out.object_error_m[0] < 0.05
+
+
+def test_a_nan_capture_is_kept_in_the_log_and_replays_to_the_same_fault(mocap_spec, box_reference, tmp_path):
+    """Nothing is lost from the log: the frame with the NaN pose is recorded as captured (NaN
+    there, the body present), the damping and its message are saved, and the recorded inputs
+    drive a fresh controller into the same fault on the same cycle."""
+    from agents.deploy.log import CycleLog, DeployLog
+
+    c = controller(mocap_spec, box_reference)
+    log = CycleLog(mocap_spec.observation_dim, {"period_ns": 20_000_000}, c.mocap)
+    for k in range(9):
+        m = scene(k, 0.02 * k, box=([np.nan, 0.0, 0.1], IDENTITY)) if k == 7 else scene(k, 0.02 * k)
+        inp = CycleInput(0.02 * k, standing(), mocap=m)
+        log.append(inp, c.step(inp), k, k, k)
+    assert c.stage == Stage.DAMP
+    saved = DeployLog.load(log.save(tmp_path / "run", c.stages.transitions, c.fault_detail))
+    a = saved.arrays
+    assert a["mocap_fresh"].all() and a["mocap_present"].all()
+    assert np.isnan(a["mocap_pos"][7, 1, 0]) and np.isfinite(a["mocap_pos"][6]).all()
+    assert a["stage"][7] == Stage.DAMP and a["stage"][6] == Stage.TRACK
+    assert "the mocap pose of box is not finite" in saved.meta["fault_detail"]
+    assert saved.transitions()[-1][1:] == ("TRACK", "DAMP", MocapFault.NAN)
+    again = controller(mocap_spec, box_reference)
+    stages = [again.step(inp).stage for inp in saved.inputs()]
+    np.testing.assert_array_equal(stages, a["stage"])
