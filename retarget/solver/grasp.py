@@ -148,8 +148,16 @@ class _Model:
     pin_model: object
     palm_frames: tuple[int, int]
     points: tuple[tuple[int, float, int], ...]  # (frame, radius, hand: 0 left, 1 right, -1 none) per collision point
-    keep_frames: tuple[int, ...]  # the forearms' surface points
     moved: np.ndarray  # tangent indices of MOVED_JOINTS
+    radius: np.ndarray  # (P,) m: the collision points' radii and hands apart (read every iteration)
+    hand: np.ndarray  # (P,)
+    #: The joints the collision points and the forearms' surface points are fixed to: each point
+    #: is posed (and its rows taken) from its joint's placement and Jacobian, not a frame of its own.
+    joints: tuple[int, ...]
+    point_slot: np.ndarray  # (P,) index into ``joints`` of each collision point's joint
+    keep_slot: np.ndarray  # (K,) index into ``joints`` of each forearm point's joint
+    point_local: np.ndarray  # (P, 3) each collision point in its joint's frame
+    keep_local: np.ndarray  # (K, 3) each forearm point in its joint's frame
 
 
 @lru_cache(maxsize=1)
@@ -164,7 +172,13 @@ def _model() -> _Model:
     meshes = visual_meshes()
     keep = tuple(robot.add_point_frame(model, link, x, f"{link}_keep{k}") for link in FOREARM_LINKS
                  for k, x in enumerate(_spread(meshes[link].vertices, KEEP_POINTS_PER_LINK)))
-    return _Model(model, (palms[0], palms[1]), points, keep, moved)
+    frames = [f for f, _, _ in points] + list(keep)
+    joints, slot = np.unique([model.frames[f].parentJoint for f in frames], return_inverse=True)
+    local = np.array([model.frames[f].placement.translation for f in frames])
+    return _Model(model, (palms[0], palms[1]), points, moved, np.array([r for _, r, _ in points]),
+                  np.array([k for _, _, k in points]),
+                  tuple(int(j) for j in joints), slot[:len(points)], slot[len(points):],
+                  local[:len(points)], local[len(points):])
 
 
 def _spread(points: np.ndarray, count: int) -> np.ndarray:
@@ -221,6 +235,15 @@ def find_holds(reference, q: np.ndarray, cfg: GraspCfg) -> tuple[list[_Hold], di
     """The two-hand holds of the reference's box-like moving objects, and their boxes."""
     import pinocchio as pin
 
+    candidates = []
+    for i, obj in enumerate(reference.objects):
+        if obj.mesh_vertices is None or np.ptp(obj.pos_w, axis=0).max() < 1e-3:
+            continue  # no shape to squeeze, or a static object (a table)
+        fit = fit_box(obj.mesh_vertices, obj.mesh_faces)
+        if fit.is_box(BoxFitCfg()):  # else the environment collides it as convex pieces: no faces to squeeze
+            candidates.append((i, obj, fit.box))
+    if not candidates:  # a walk: no frame is posed
+        return [], {}
     mdl = _model()
     data = mdl.pin_model.createData()
     T = q.shape[0]
@@ -230,17 +253,10 @@ def find_holds(reference, q: np.ndarray, cfg: GraspCfg) -> tuple[list[_Hold], di
         pin.framesForwardKinematics(mdl.pin_model, data, q[t])
         hands[t] = [data.oMf[f].translation for f in mdl.palm_frames]
         geoms[t] = [data.oMf[f].translation for f, _, _ in mdl.points]
-    radius = np.array([r for _, r, _ in mdl.points])
-    hand_of = np.array([k for _, _, k in mdl.points])
+    radius, hand_of = mdl.radius, mdl.hand
     holds, boxes = [], {}
     min_frames = max(int(round(cfg.min_hold_s * reference.fps)), 1)
-    for i, obj in enumerate(reference.objects):
-        if obj.mesh_vertices is None or np.ptp(obj.pos_w, axis=0).max() < 1e-3:
-            continue  # no shape to squeeze, or a static object (a table)
-        fit = fit_box(obj.mesh_vertices, obj.mesh_faces)
-        if not fit.is_box(BoxFitCfg()):
-            continue  # the environment collides it as convex pieces: no faces to squeeze
-        box = fit.box
+    for i, obj, box in candidates:
         centre, rot = _box_frames(obj, box)
         local = np.einsum("tji,tkj->tki", rot, hands - centre[:, None])  # (T, 2, 3) box frame
         d = np.stack([box_signed_distance(local[:, k], box.half_extents)[0] for k in range(2)], axis=1)
@@ -284,7 +300,6 @@ def grasp_boxes(reference, cfg: GraspCfg = GraspCfg()):
     from otr_gym.reference import Reference
 
     start = time.perf_counter()
-    m = _model().pin_model
     q_ref = robot.qpos_mujoco_to_pinocchio(reference.qpos())
     holds, boxes = find_holds(reference, q_ref, cfg)
     kept = [{"object": reference.objects[h.object].name, "frames": list(h.frames), "axis": h.axis, "kept": True}
@@ -292,6 +307,8 @@ def grasp_boxes(reference, cfg: GraspCfg = GraspCfg()):
     holds = [h for h in holds if not h.kept]
     if not holds:
         return reference, GraspReport(kept, time.perf_counter() - start)
+    m = _model().pin_model
+    data = m.createData()
     q = q_ref.copy()
     ramp = max(int(round(cfg.ramp_s * reference.fps)), 1)
     T = q.shape[0]
@@ -318,8 +335,8 @@ def grasp_boxes(reference, cfg: GraspCfg = GraspCfg()):
                                                                   pin.difference(m, previous[1], previous[0]))
             # inside the joint limits: the QP's step bounds keep an iterate there, not bring it back
             start_q[7:] = np.clip(start_q[7:], robot.JOINT_LOWER, robot.JOINT_UPPER)
-            q[t], depths[n] = _solve_frame(start_q, q_ref[t], previous, centre[t], rot[t], box, hold, blend[n],
-                                           depth[n], cfg)
+            q[t], depths[n] = _solve_frame(m, data, start_q, q_ref[t], previous, centre[t], rot[t], box, hold,
+                                           blend[n], depth[n], cfg)
             previous = (q[t], q_ref[t])
         held = slice(a - lo, b - lo)
         report.append({"object": obj.name, "frames": [a, b], "axis": hold.axis, "grip_b": hold.grip_b.tolist(),
@@ -332,43 +349,45 @@ def grasp_boxes(reference, cfg: GraspCfg = GraspCfg()):
     return out, GraspReport(report + kept, time.perf_counter() - start)
 
 
-def _solve_frame(q: np.ndarray, q_bar: np.ndarray, previous, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
-                 hold: _Hold, blend: float, depth: float, cfg: GraspCfg) -> tuple[np.ndarray, np.ndarray]:
+def _solve_frame(m, data, q: np.ndarray, q_bar: np.ndarray, previous, centre: np.ndarray, rot: np.ndarray,
+                 box: BoxShape, hold: _Hold, blend: float, depth: float,
+                 cfg: GraspCfg) -> tuple[np.ndarray, np.ndarray]:
     """(the frame's configuration, [deepest hand geom, deepest other geom] inside the box (m)):
-    the palms ``blend`` of the way to their face targets ``depth`` deep (negative: off the face)."""
+    the palms ``blend`` of the way to their face targets ``depth`` deep (negative: off the face).
+    ``data`` is the pass's one Pinocchio data of ``m`` (posed here at every iterate)."""
     import pinocchio as pin
     from proxsuite import proxqp
 
     mdl = _model()
-    m, data = mdl.pin_model, mdl.pin_model.createData()
     world = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
     cols = mdl.moved
     n = cols.size
     half = box.half_extents
-    targets, normals = [], []
-    for k in range(2):
+    keep_d, keep = _kept_distances(m, data, q_bar, centre, rot, box, cfg)
+    # what the iterations read but do not move: the palms' goals (between the per-frame palm, read
+    # off ``data`` still posed at q̄, and the face target) and the frame before's correction
+    goals, normals = [], []
+    for k, fid in enumerate(mdl.palm_frames):
         face = hold.grip_b.copy()
         face[hold.axis] = hold.side[k] * (half[hold.axis] - depth)
-        targets.append(centre + rot @ face)
+        goals.append((1.0 - blend) * data.oMf[fid].translation + blend * (centre + rot @ face))
         normals.append(-hold.side[k] * rot[:, hold.axis])  # into the box
-    keep_d, keep = _kept_distances(m, data, q_bar, centre, rot, box, cfg)
+    before = None if previous is None else pin.difference(m, previous[1], previous[0])[cols]
     for _ in range(cfg.iterations):
         pin.computeJointJacobians(m, data, q)
         pin.updateFramePlacements(m, data)
+        joint_jac = _joint_jacobians(m, data, cols)
         h = np.zeros((n, n))
         g = np.zeros(n)
         if keep.size:
-            frames = [mdl.keep_frames[i] for i in keep]
-            d, grad_w = _point_distances(data, frames, centre, rot, box)
-            jac = np.stack([grad_w[j] @ pin.getFrameJacobian(m, data, f, world)[:3, cols]
-                            for j, f in enumerate(frames)])
+            d, grad_w, pos = _point_distances(data, mdl.keep_slot[keep], mdl.keep_local[keep], centre, rot, box)
+            jac = _normal_rows(joint_jac[mdl.keep_slot[keep]], pos, grad_w)
             h += cfg.keep_weight * jac.T @ jac
             g += cfg.keep_weight * jac.T @ (d - keep_d)
         for k, fid in enumerate(mdl.palm_frames):
             pose = data.oMf[fid]
             jac = pin.getFrameJacobian(m, data, fid, world)[:, cols]
-            goal = (1.0 - blend) * _frame_point(m, q_bar, fid) + blend * targets[k]
-            r = pose.translation - goal
+            r = pose.translation - goals[k]
             h += cfg.hand_weight * jac[:3].T @ jac[:3]
             g += cfg.hand_weight * jac[:3].T @ r
             if blend > 0:
@@ -380,11 +399,11 @@ def _solve_frame(q: np.ndarray, q_bar: np.ndarray, previous, centre: np.ndarray,
         posture = pin.difference(m, q_bar, q)[cols]
         h += cfg.posture_weight * np.eye(n)
         g += cfg.posture_weight * posture
-        if previous is not None:
-            shift = posture - pin.difference(m, previous[1], previous[0])[cols]
+        if before is not None:
+            shift = posture - before
             h += cfg.smooth_weight * np.eye(n)
             g += cfg.smooth_weight * shift
-        c_rows, lower, depths = _box_rows(m, data, q, cols, centre, rot, box, hold, depth, cfg)
+        c_rows, lower, depths = _box_rows(data, joint_jac, centre, rot, box, hold, depth, cfg)
         joints = q[7:][cols - 6]
         step_lo = np.maximum(robot.JOINT_LOWER[cols - 6] - joints, -cfg.step_rad)
         step_hi = np.minimum(robot.JOINT_UPPER[cols - 6] - joints, cfg.step_rad)
@@ -403,74 +422,89 @@ def _solve_frame(q: np.ndarray, q_bar: np.ndarray, previous, centre: np.ndarray,
         q = pin.integrate(m, q, delta)
         if np.abs(qp.results.x).max() < 1e-5:
             break
-    _, _, depths = _box_rows(m, data, q, cols, centre, rot, box, hold, depth, cfg, jacobians=False)
+    pin.framesForwardKinematics(m, data, q)
+    _, _, depths = _box_rows(data, None, centre, rot, box, hold, depth, cfg)
     return q, depths
 
 
-def _point_distances(data, frames: list[int], centre: np.ndarray, rot: np.ndarray,
-                     box: BoxShape) -> tuple[np.ndarray, np.ndarray]:
-    """(d (K,), ∇d (K, 3) world): signed distances (m) of the points of ``frames`` (posed in
-    ``data``) to the box, and their gradients."""
-    pos = np.array([data.oMf[f].translation for f in frames])
+def _joint_jacobians(m, data, cols: np.ndarray) -> np.ndarray:
+    """(J, 6, n) the world Jacobians (``pin.ReferenceFrame.WORLD``: linear velocity of the point at
+    the world origin, angular velocity) of ``_model().joints``, moved columns; ``data`` after
+    ``computeJointJacobians``. One per joint: a point's rows follow from its joint's (``_normal_rows``)."""
+    import pinocchio as pin
+
+    world = pin.ReferenceFrame.WORLD
+    return np.stack([pin.getJointJacobian(m, data, j, world)[:, cols] for j in _model().joints])
+
+
+def _normal_rows(joint_jac: np.ndarray, pos: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(K, n) n_k · ∂p_k/∂q of points p_k (K, 3, world) fixed to joints of world Jacobians
+    ``joint_jac`` (K, 6, n): the point moves with v_O + ω × p, so the row is n·J_v + (p × n)·J_ω
+    (what ``getFrameJacobian(LOCAL_WORLD_ALIGNED)`` of a frame at p gives, without a frame per point)."""
+    return (np.einsum("ki,kin->kn", normal, joint_jac[:, :3])
+            + np.einsum("ki,kin->kn", _cross(pos, normal), joint_jac[:, 3:]))
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise a × b of (K, 3) arrays: ``np.cross``'s arithmetic without its ~100 µs of axis handling."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
+
+
+def _posed(data, slot: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """(K, 3) world positions of points ``local`` (K, 3) given in the frames of the joints
+    ``_model().joints[slot]``, at the placements ``data`` holds."""
+    placements = [data.oMi[j] for j in _model().joints]
+    rot = np.array([x.rotation for x in placements])[slot]
+    return np.einsum("kij,kj->ki", rot, local) + np.array([x.translation for x in placements])[slot]
+
+
+def _point_distances(data, slot: np.ndarray, local: np.ndarray, centre: np.ndarray, rot: np.ndarray,
+                     box: BoxShape) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(d (K,), ∇d (K, 3) world, positions (K, 3) world): signed distances (m) of the points
+    ``_posed(data, slot, local)`` to the box, their gradients and the points."""
+    pos = _posed(data, slot, local)
     d, grad_b = box_signed_distance((pos - centre) @ rot, box.half_extents)
-    return d, grad_b @ rot.T
+    return d, grad_b @ rot.T, pos
 
 
 def _kept_distances(m, data, q_bar: np.ndarray, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
                     cfg: GraspCfg) -> tuple[np.ndarray, np.ndarray]:
-    """(distances (K,), indices into ``_model().keep_frames`` (K,)): the forearms' surface points
+    """(distances (K,), indices into ``_model().keep_slot`` (K,)): the forearms' surface points
     within ``keep_m`` of the box in the per-frame solution, and their distances (at least 0).
-    ``data`` is posed at ``q_bar`` here (the frame's solve re-poses it at its own iterate)."""
+    ``data`` is left posed at ``q_bar`` (the frame's solve reads the palms there, then re-poses
+    it at its own iterate)."""
     import pinocchio as pin
 
     pin.framesForwardKinematics(m, data, q_bar)
-    d, _ = _point_distances(data, list(_model().keep_frames), centre, rot, box)
+    mdl = _model()
+    d, _, _ = _point_distances(data, mdl.keep_slot, mdl.keep_local, centre, rot, box)
     near = np.flatnonzero(d < cfg.keep_m)
     return np.maximum(d[near], 0.0), near
 
 
-def _frame_point(m, q: np.ndarray, fid: int) -> np.ndarray:
-    import pinocchio as pin
-
-    data = m.createData()
-    pin.framesForwardKinematics(m, data, q)
-    return data.oMf[fid].translation.copy()
-
-
-def _box_rows(m, data, q: np.ndarray, cols: np.ndarray, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
-              hold: _Hold, depth: float, cfg: GraspCfg,
-              jacobians: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _box_rows(data, joint_jac: np.ndarray | None, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
+              hold: _Hold, depth: float, cfg: GraspCfg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(C (R, n), lower (R,), [deepest hand geom, deepest other geom] (m, ≥ 0)): linearised rows
-    C δ ≥ lower. A hand's geom points reach at most ``depth`` past the plane of its face (a
-    half-space: no box corner for the hand to catch on while it moves round the edge it came
-    from); the other links' geom points, within ``near_m`` of the box, keep ``clearance_m`` off it."""
-    import pinocchio as pin
-
+    C δ ≥ lower at the configuration ``data`` is posed at (``joint_jac``: ``_joint_jacobians``
+    there; None: the depths alone). A hand's geom points reach at most ``depth`` past the plane
+    of its face (a half-space: no box corner for the hand to catch on while it moves round the
+    edge it came from); the other links' geom points, within ``near_m`` of the box, keep
+    ``clearance_m`` off it."""
     mdl = _model()
-    if not jacobians:
-        pin.framesForwardKinematics(m, data, q)
-    frames = [f for f, _, _ in mdl.points]
-    pos = np.array([data.oMf[f].translation for f in frames])
-    radius = np.array([r for _, r, _ in mdl.points])
-    hand = np.array([k for _, _, k in mdl.points])
+    pos = _posed(data, mdl.point_slot, mdl.point_local)
     local = (pos - centre) @ rot
     dist, grad_b = box_signed_distance(local, box.half_extents)
-    dist = dist - radius
+    dist = dist - mdl.radius
+    hand = mdl.hand
     side = np.array(hold.side)[np.maximum(hand, 0)]
     # how far past its face plane each hand point's surface reaches (m)
-    past = box.half_extents[hold.axis] - (side * local[:, hold.axis] - radius)
+    past = box.half_extents[hold.axis] - (side * local[:, hold.axis] - mdl.radius)
     is_hand = hand >= 0
     deepest = np.array([max(0.0, -dist[is_hand].min(initial=0.0)), max(0.0, -dist[~is_hand].min(initial=0.0))])
-    rows, lower = [], []
-    if jacobians:
-        world = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
-        for i in range(len(frames)):
-            if is_hand[i]:
-                normal, gap = side[i] * rot[:, hold.axis], depth - past[i]
-            elif dist[i] < cfg.near_m:
-                normal, gap = rot @ grad_b[i], dist[i] - cfg.clearance_m
-            else:
-                continue
-            rows.append(normal @ pin.getFrameJacobian(m, data, frames[i], world)[:3, cols])
-            lower.append(-gap)
-    return (np.array(rows).reshape(-1, cols.size), np.array(lower), deepest)
+    if joint_jac is None:
+        return np.zeros((0, mdl.moved.size)), np.zeros(0), deepest
+    rows = np.flatnonzero(is_hand | (dist < cfg.near_m))  # in point order, as the QP always took them
+    normal = np.where(is_hand[rows, None], side[rows, None] * rot[:, hold.axis], grad_b[rows] @ rot.T)
+    gap = np.where(is_hand[rows], depth - past[rows], dist[rows] - cfg.clearance_m)
+    return _normal_rows(joint_jac[mdl.point_slot[rows]], pos[rows], normal), -gap, deepest
