@@ -2,10 +2,13 @@
 table of the runner's loop timing, the tracking error and the sim robot's real-time figures.
 
     python benchmarks/deploy_sim2sim.py [--policy P.onnx --reference R.npz] [--duration 60] [--rt-priority 80]
+                                        [--busy 2]
 
 Without ``--policy`` it builds the open-loop "reference policy" (``agents/deploy/reference_policy.py``,
 stiff start-up gains) and a 64 s procedural sway (``agents/procedural.py``) to track. Both
-processes run on this machine; the CycloneDDS traffic stays on ``lo``. Prints a Markdown table.
+processes run on this machine; the CycloneDDS traffic stays on ``lo``. ``--busy N`` loads the
+machine with N CPU-bound processes for the whole run (the issue's "busy 2-core machine").
+Prints a Markdown table.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ def main() -> int:
     p.add_argument("--domain-id", type=int, default=200)
     p.add_argument("--rt-priority", type=int, default=0, help="SCHED_FIFO priority for both loops (0: off)")
     p.add_argument("--out", type=Path, default=None, help="folder for the log and stats (default: a temp folder)")
+    p.add_argument("--busy", type=int, default=0, help="CPU-bound processes running beside the two loops")
     args = p.parse_args()
 
     from agents.deploy.log import DeployLog, log_timing
@@ -52,6 +56,7 @@ def main() -> int:
         policy = write_reference_policy(out / "reference_policy.onnx", reference)
     env = dict(os.environ, PYTHONPATH=str(REPO), OMP_NUM_THREADS="1")
     rt = ["--rt-priority", str(args.rt_priority)] if args.rt_priority else []
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy)]
     cli = [sys.executable, "-m", "otr_gym.cli"]
     common = ["--interface", "lo", "--domain-id", str(args.domain_id)]
     sim = subprocess.Popen([*cli, "sim-robot", *common, "--reference", str(reference), "--duration",
@@ -61,6 +66,9 @@ def main() -> int:
                           "--auto-start", "--duration", str(args.duration), "--damp-s", "1", "--log",
                           str(out / "run.npz"), *rt], env=env, cwd=REPO)
     sim.wait()
+    for b in busy:
+        b.kill()
+    load = os.getloadavg()[0]
     log = DeployLog.load(out / "run.npz")
     stats = json.loads((out / "sim.json").read_text())
     a = log.arrays
@@ -71,7 +79,7 @@ def main() -> int:
         ("tracking", f"{track.sum() / 50:.1f} s ({int(track.sum())} cycles), ended "
                      f"{log.transitions()[-1][3]}, runner exit {run.returncode}"),
         ("cycle period p50 / p99 / max", f"{p_['p50']:.3f} / {p_['p99']:.3f} / {p_['max']:.3f} ms"),
-        ("period error p99 / max (goal p99 < 2 ms)", f"{e['p99']:.3f} / {e['max']:.3f} ms"),
+        ("period error p99 / max (goal p99 < 1 ms)", f"{e['p99']:.3f} / {e['max']:.3f} ms"),
         ("jitter (std of period)", f"{tm['jitter_ms']:.3f} ms"),
         ("wake lateness p50 / p99 / max", f"{late['p50']:.3f} / {late['p99']:.3f} / {late['max']:.3f} ms"),
         ("cycle compute p50 / p99 / max", f"{comp['p50']:.3f} / {comp['p99']:.3f} / {comp['max']:.3f} ms"),
@@ -89,7 +97,8 @@ def main() -> int:
         ("LowCmd accepted / dropped (bad CRC)", f"{stats['accepted']} / {stats['dropped_bad_crc']}"),
     ]
     print(f"\n{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, {time.strftime('%Y-%m-%d')}, "
-          f"policy {policy.name}, rt-priority {args.rt_priority or 'off'}, files in {out}\n")
+          f"policy {policy.name}, rt-priority {args.rt_priority or 'off'}, {args.busy} busy processes, "
+          f"1-min load {load:.1f}, files in {out}\n")
     print("| quantity | value |\n|---|---|")
     for k, v in rows:
         print(f"| {k} | {v} |")

@@ -63,26 +63,6 @@ class DeadlineClock:
         return deadline - self.t0, now - self.t0
 
 
-def set_time_slice(slice_us: float) -> bool:
-    """Ask the kernel's EEVDF scheduler (Linux ≥ 6.12) for a ``slice_us`` time slice for the
-    calling thread (``sched_setattr``'s ``sched_runtime`` under SCHED_OTHER): a task with a short
-    slice gets an early virtual deadline when it wakes, so it preempts CPU-bound tasks at once
-    instead of after their slice; its CPU share is unchanged, so no privilege is needed. False
-    where the kernel or platform does not offer it (the call is then a no-op)."""
-    if not sys.platform.startswith("linux") or platform.machine() not in ("x86_64", "aarch64"):
-        return False
-    import ctypes
-    import struct
-
-    # struct sched_attr (include/uapi/linux/sched/types.h, SCHED_ATTR_SIZE_VER1 = 56 bytes)
-    attr = struct.pack("IIQiIQQQII", 56, os.SCHED_OTHER, 0, os.getpriority(os.PRIO_PROCESS, 0), 0,
-                       int(slice_us * 1000), 0, 0, 0, 0)
-    nr = 314 if platform.machine() == "x86_64" else 274  # __NR_sched_setattr
-    libc = ctypes.CDLL(None, use_errno=True)
-    buf = ctypes.create_string_buffer(attr, len(attr))
-    return libc.syscall(nr, 0, buf, 0) == 0
-
-
 def set_realtime_priority(priority: int) -> None:
     """SCHED_FIFO at ``priority`` (1..99) for the calling thread: the loop then wakes on time
     even when other processes load the CPU. Needs root or CAP_SYS_NICE (``ulimit -r``)."""
@@ -288,10 +268,6 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
                    help="spin (instead of sleep) this long before a deadline (µs; default: %(default)s)")
     p.add_argument("--rt-priority", type=int, default=0,
                    help="run the loop at this SCHED_FIFO priority (1-99; 0 = normal scheduling; default: %(default)s)")
-    p.add_argument("--slice-us", type=float, default=500.0,
-                   help="ask Linux's EEVDF scheduler (kernel ≥ 6.12; no privilege needed) for this time slice for "
-                        "the loop, so it preempts CPU-bound processes when it wakes (µs, 100-100000; 0: the "
-                        "kernel's default; default: %(default)s)")
     p.add_argument("--wait-timeout", type=float, default=30.0,
                    help="give up when no LowState arrives in this time (s; default: %(default)s)")
     p.add_argument("--mocap", nargs="?", const=TOPIC_MOCAP, default=None, metavar="TOPIC",
@@ -353,10 +329,6 @@ def main(args: argparse.Namespace) -> int:
         if args.rt_priority:
             set_realtime_priority(args.rt_priority)  # after the DDS threads exist: only this loop is real-time
             runner.log.meta["rt_priority"] = args.rt_priority
-        elif args.slice_us:
-            if not 100 <= args.slice_us <= 100_000:
-                raise ValueError(f"--slice-us {args.slice_us:g}: the kernel takes 100 to 100000 µs (0: off)")
-            runner.log.meta["slice_us"] = args.slice_us if set_time_slice(args.slice_us) else None
     except (FileNotFoundError, ValueError, PolicySpecError, TransportError, PermissionError) as exc:
         print(f"otr deploy: {exc}", file=sys.stderr)
         return 2
