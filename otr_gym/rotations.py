@@ -9,16 +9,21 @@ share the same maths.
 
 from __future__ import annotations
 
+import sys
+from typing import Any
+
 import numba
 import numpy as np
 
-try:
-    import torch
-except ImportError:  # pragma: no cover - torch is a hard dependency, kept optional here
-    torch = None  # type: ignore[assignment]
+#: torch, once something has imported it: a tensor cannot exist before, and the retargeter
+#: (NumPy only) then never pays torch's ~2.5 s import. Every torch call below follows _is_torch.
+torch: Any = None
 
 
 def _is_torch(x) -> bool:
+    global torch
+    if torch is None:
+        torch = sys.modules.get("torch")
     return torch is not None and isinstance(x, torch.Tensor)
 
 
