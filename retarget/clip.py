@@ -116,7 +116,7 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     if cfg.trajectory.enabled:  # the paths repaired where they jump (retarget.solver.trajectory)
         from retarget.solver.trajectory import smooth_trajectory
 
-        reference, report = smooth_trajectory(reference, cfg.trajectory)
+        reference, report = smooth_trajectory(reference, cfg.trajectory, problem)
         reference.metadata["trajectory"] = {"flagged": report.flagged, "windows": len(report.windows),
                                             "unsolved_windows": report.unsolved,
                                             "moved_m": report.moved_m}
