@@ -16,7 +16,6 @@ non-finite pose, a needed body the stream does not carry.
 """
 
 # No ``from __future__ import annotations``: CycloneDDS resolves the field annotations at run time.
-import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -145,6 +144,10 @@ class MocapTracker:
         self.frame: MocapFrame | None = None  # the newest frame (as received, stream names)
         self.cycles_without_frame = 0
         self.fault: tuple[str, str] | None = None  # (MocapFault, message) of the newest frame
+        # computed once per new frame: the controller reads the motion several times a cycle
+        # and the log the rows of the frame the tracker has just taken apart
+        self._motion: BodyMotion | None = None
+        self._rows: tuple[MocapFrame | None, np.ndarray, np.ndarray] = (None, np.empty(0), np.empty(0))
 
     def stream_name(self, body: str) -> str:
         return self.cfg.names.get(body, body)
@@ -179,15 +182,19 @@ class MocapTracker:
         self.history.append((t, pos, quat))
         while self.history and self.history[0][0] < t - self.cfg.velocity_window_s - 1e-9:
             self.history.popleft()
+        self._motion = self._window_motion()
 
     def rows(self, frame: MocapFrame) -> tuple[np.ndarray, np.ndarray]:
         """(B, 3) positions and (B, 4) quaternions of ``cfg.bodies`` in ``frame`` (NaN where absent)."""
+        if frame is self._rows[0]:
+            return self._rows[1], self._rows[2]
         index = {n: i for i, n in enumerate(frame.names)}
         pos, quat = np.full((len(self.cfg.bodies), 3), np.nan), np.full((len(self.cfg.bodies), 4), np.nan)
         for k, b in enumerate(self.cfg.bodies):
             i = index.get(self.stream_name(b))
             if i is not None:
                 pos[k], quat[k] = frame.pos_w[i], frame.quat_wxyz[i]
+        self._rows = (frame, pos, quat)
         return pos, quat
 
     def current_fault(self) -> tuple[str, str] | None:
@@ -200,8 +207,9 @@ class MocapTracker:
 
     def motion(self) -> BodyMotion | None:
         """The newest good capture of ``cfg.bodies`` with velocities, or None before one."""
-        if not self.history:
-            return None
+        return self._motion
+
+    def _window_motion(self) -> BodyMotion:
         t = np.array([h[0] for h in self.history])
         pos = np.stack([h[1] for h in self.history])
         quat = np.stack([h[2] for h in self.history])
@@ -209,7 +217,3 @@ class MocapTracker:
         relative = quat_mul(quat, np.broadcast_to(quat_conj(quat[-1]), quat.shape))
         return BodyMotion(pos_w=pos[-1], quat_wxyz=quat[-1], lin_vel_w=velocity_slope(t, pos),
                           ang_vel_w=velocity_slope(t, quat_to_rotvec(relative)))
-
-    def age_s(self, wall_ns: int) -> float:
-        """Seconds from the newest frame's capture to ``wall_ns`` (capture clock), NaN before one."""
-        return (wall_ns - self.frame.stamp_ns) * 1e-9 if self.frame is not None else math.nan
