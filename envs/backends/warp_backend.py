@@ -29,7 +29,7 @@ import torch
 import warp as wp
 
 from envs.backends.base import PhysicsBackend
-from envs.backends.model import contact_sensor_adr
+from envs.backends.contact_forces import NetContactForces
 
 #: Set (to anything but empty or 0) to keep Warp's start-up banner and its "Module … load on
 #: device … took … ms" line per kernel module (~44 on every environment start, cached or not).
@@ -48,16 +48,6 @@ def quiet_warp() -> None:
 
 
 quiet_warp()
-
-
-@wp.kernel
-def _max_contact_force(sensordata: wp.array2d(dtype=float), adr: wp.array(dtype=wp.int32),
-                       out: wp.array2d(dtype=float)):
-    """out[w, c] = max(out[w, c], |force of contact sensor c|) for world w."""
-    w, c = wp.tid()
-    a = adr[c]
-    f = wp.vec3(sensordata[w, a], sensordata[w, a + 1], sensordata[w, a + 2])
-    out[w, c] = wp.max(out[w, c], wp.length(f))
 
 
 class WarpBackend(PhysicsBackend):
@@ -93,7 +83,11 @@ class WarpBackend(PhysicsBackend):
             # printf from thousands of worlds per substep would flood the log and stall the step.
             self._m.opt.warn_overflow &= ~(mjw.OverflowType.ITERATIONS | mjw.OverflowType.LS_ITERATIONS)
             self._d = mjw.put_data(model, data, nworld=num_worlds, nconmax=nconmax, njmax=njmax)
-            self._adr = wp.array(contact_sensor_adr(model, self._contact_sensor_names), dtype=wp.int32)
+            # The model's only sensors are the contact sensors, evaluated here by NetContactForces
+            # at a fraction of MuJoCo-Warp's generic cost (envs/backends/contact_forces.py).
+            self._m.opt.disableflags |= mjw.DisableBit.SENSOR
+            self._net_forces = NetContactForces(model, self._contact_sensor_names, num_worlds,
+                                                self._d.naconmax, wp_device)
             self._contact_max = wp.zeros((num_worlds, len(self._contact_sensor_names)), dtype=float)
         d, m = self._d, self._m
         self._qpos_t, self._qvel_t, self._ctrl_t = wp.to_torch(d.qpos), wp.to_torch(d.qvel), wp.to_torch(d.ctrl)
@@ -202,9 +196,7 @@ class WarpBackend(PhysicsBackend):
         self._contact_max.zero_()
         for _ in range(self.decimation):
             mjw.step(self._m, self._d)
-            if self._contact_sensor_names:
-                wp.launch(_max_contact_force, dim=self._contact_max.shape,
-                          inputs=[self._d.sensordata, self._adr], outputs=[self._contact_max])
+            self._net_forces.update(self._m, self._d, self._contact_max)
         self._refresh()
 
     def _refresh(self) -> None:
