@@ -68,7 +68,7 @@ from agents.deploy.options import name_values, positive_float
 from agents.deploy.safety import STARTUP_KD
 from otr_gym import robot
 from otr_gym.io import save_npz, write_json
-from otr_gym.rotations import quat_apply, quat_error_angle, quat_from_yaw, quat_mul, quat_to_matrix
+from otr_gym.rotations import quat_apply, quat_error_angle, quat_from_yaw, quat_mul, quat_to_matrix, quat_yaw
 
 UPRIGHT_MIN_PELVIS_Z = 0.5  # m: below this (or tilted past UPRIGHT_MAX_TILT) the robot has fallen
 UPRIGHT_MAX_TILT = np.radians(60.0)
@@ -495,32 +495,54 @@ def object_summary(sim: SimRobot, poses: np.ndarray) -> dict:
     return out
 
 
-def initial_pose(reference: str | None) -> np.ndarray | None:
-    """qpos of the reference's first frame (root and joints), or None for the default pose."""
+def initial_pose(reference: str | None, default_pose: bool = False) -> np.ndarray | None:
+    """qpos of the reference's first frame (root and joints), or None for the default pose.
+    With ``default_pose``: the G1's default standing pose at the first frame's root x, y and
+    heading (where a robot stands after its gantry start-up; a clip whose first frame does not
+    balance open loop, such as ``otr demo``'s carry, topples the robot during the runner's ramp)."""
     if reference is None:
         return None
     from otr_gym.reference import Reference
 
     ref = Reference.load(reference)
+    if default_pose:
+        qpos = robot.default_qpos()
+        qpos[:2] = ref.root_pos_w[0, :2]
+        qpos[3:7] = quat_mul(quat_yaw(ref.root_quat_w[0]), qpos[3:7])
+        return qpos
     return np.concatenate([ref.root_pos_w[0], ref.root_quat_w[0], ref.dof_pos[0]])
 
 
-def sim_objects(reference: str | None, object_meshes: list[str] | None = None):
+def sim_box_config(object_meshes: list[str] | None = None, env_sets: list[str] | None = None):
+    """The box environment's config the sim robot builds its objects and draws with:
+    ``configs/env/box.yaml`` with ``env_sets`` ("KEY=VALUE", dotted keys of that file, as a
+    training run's ``--set env.KEY=VALUE``, e.g. objects.grasp_fit_quantile=0) and
+    ``object_meshes`` ("NAME=FILE": a mesh for an object the file does not embed, Holosoma's)."""
+    from envs.config import load_box_config
+    from otr_gym.config import merge, parse_sets
+
+    overrides = {name: {"mesh": mesh} for name, mesh in
+                 name_values(object_meshes, "--object-mesh", "NAME=FILE", "largebox=largebox.obj").items()}
+    try:
+        return load_box_config(None, merge(parse_sets(env_sets or [], "--env-set"),
+                                           {"objects": {"overrides": overrides}} if overrides else None))
+    except (TypeError, KeyError, ValueError) as exc:  # a key the config does not have, a wrong type
+        raise ValueError(f"--env-set {' '.join(env_sets or [])}: {exc}") from exc
+
+
+def sim_objects(reference: str | None, object_meshes: list[str] | None = None, cfg=None):
     """(``envs.objects.SceneObjects`` or None, contact dimension, name -> (7,) last-frame pose of
     each moving object) of a reference's objects, built as the box environment builds them
-    (``envs.box.box_scene`` with ``configs/env/box.yaml``); ``object_meshes`` ("NAME=FILE")
-    give a mesh to an object the file does not embed (Holosoma's references)."""
+    (``envs.box.box_scene`` with ``cfg``, default ``sim_box_config(object_meshes)``: configs/env/box.yaml
+    with the meshes ``object_meshes`` ("NAME=FILE") give objects the file does not embed)."""
     if reference is None:
         return None, 3, {}
     from envs.box import box_scene
-    from envs.config import load_box_config
     from otr_gym.reference import Reference
 
     if not Reference.load(reference).objects:
         return None, 3, {}
-    overrides = {name: {"mesh": mesh} for name, mesh in
-                 name_values(object_meshes, "--object-mesh", "NAME=FILE", "largebox=largebox.obj").items()}
-    cfg = load_box_config(None, {"objects": {"overrides": overrides}} if overrides else None)
+    cfg = sim_box_config(object_meshes) if cfg is None else cfg
     refs, _, scene, _, _ = box_scene(reference, cfg)
     goals = {t.name: np.concatenate([t.pos_w[-1], t.quat_w[-1]]) for t in refs[0].objects
              if any(o.name == t.name for o in scene.moving)}
@@ -605,9 +627,15 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0; default: %(default)s)")
     p.add_argument("--reference", default=None, help="start on this reference's first frame, its objects too "
                    "(default: default pose, no objects)")
+    p.add_argument("--start-pose", choices=("reference", "default"), default="reference",
+                   help="with --reference: start on its first frame, or standing in the default pose at its first "
+                        "frame's x, y and heading, as after a gantry start-up (default: %(default)s)")
     p.add_argument("--no-objects", action="store_true", help="do not simulate the reference's objects")
     p.add_argument("--object-mesh", action="append", default=None, metavar="NAME=FILE",
                    help="mesh of an object the reference does not embed (e.g. Holosoma's: largebox=largebox.obj)")
+    p.add_argument("--env-set", action="append", default=None, metavar="KEY=VALUE",
+                   help="a key of configs/env/box.yaml (dotted) for the objects and their draws, as the policy's "
+                        "training run set it with --set env.KEY=VALUE (e.g. objects.grasp_fit_quantile=0)")
     p.add_argument("--object-draw", type=int, default=None, metavar="SEED",
                    help="draw the moving objects' friction, mass and inertia from this seed as the box environment "
                         "does in training (objects.randomization of configs/env/box.yaml); --stats records them "
@@ -656,17 +684,15 @@ def main(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        objects, condim, goals = (None, 3, {}) if args.no_objects else sim_objects(args.reference, args.object_mesh)
+        box_cfg = sim_box_config(args.object_mesh, args.env_set) if args.reference is not None else None
+        objects, condim, goals = (None, 3, {}) if args.no_objects else sim_objects(args.reference, cfg=box_cfg)
         masses = name_values(args.object_mass, "--object-mass", "NAME=KG", "box=2.5", positive_float)
         frictions = name_values(args.object_friction, "--object-friction", "NAME=MU", "box=0.9", positive_float)
-        randomization = None
-        if args.object_draw is not None:
-            from envs.config import load_box_config
-
-            randomization = load_box_config().objects.randomization
+        randomization = None if args.object_draw is None or box_cfg is None else box_cfg.objects.randomization
         properties = object_properties(objects, masses, frictions, args.object_draw, randomization)
+        start = initial_pose(args.reference, args.start_pose == "default")
         sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
-                                   yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference),
+                                   yaw_rad=float(np.radians(args.yaw))), start,
                        None if args.terrain is None else sim_terrain(args.terrain, args.reference), objects, condim,
                        properties)
         sim.object_goals = goals if not args.yaw else {}  # a turned scene has no goal in the reference's frame
@@ -696,6 +722,8 @@ def main(args: argparse.Namespace) -> int:
     if randomization is not None:
         summary["object_draw"] = {"seed": args.object_draw, "config": "configs/env/box.yaml objects.randomization",
                                   **dataclasses.asdict(randomization)}
+    if args.env_set:
+        summary["env_set"] = list(args.env_set)
     if args.stats:
         write_json(args.stats, summary)
     if args.trace:

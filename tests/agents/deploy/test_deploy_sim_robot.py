@@ -151,6 +151,13 @@ def test_object_options_set_mass_and_friction_and_refuse_unknown_objects(box_ref
         object_properties(scene, frictions={"table": 0.5})
     with pytest.raises(ValueError, match="--object-draw: the reference has no moving objects"):
         object_properties(None, draw_seed=0)
+    # --env-set: the box config the policy was trained with, as its run's --set env.KEY=VALUE
+    from agents.deploy.sim_robot import sim_box_config
+
+    heavier, _, _ = sim_objects(str(box_reference), cfg=sim_box_config(None, ["objects.mass_kg=2"]))
+    assert heavier.moving[0].mass_kg == 2.0
+    with pytest.raises(ValueError, match=r"--env-set objects.nope=1: .*unknown keys \['nope'\]"):
+        sim_box_config(None, ["objects.nope=1"])
 
 
 def test_object_draws_are_the_training_envs_randomisation(box_reference):
@@ -192,3 +199,17 @@ def test_object_draws_are_the_training_envs_randomisation(box_reference):
         assert lo <= draws[:, column].min() < lo + 0.05 * (hi - lo)
         assert hi - 0.05 * (hi - lo) < draws[:, column].max() <= hi
     assert len({tuple(r) for r in draws}) == 200
+
+
+def test_the_default_start_pose_stands_where_the_reference_starts(walking_reference):
+    """``--start-pose default``: the default pose at the first frame's x, y and heading."""
+    from agents.deploy.sim_robot import initial_pose
+    from otr_gym.reference import Reference
+    from otr_gym.rotations import quat_yaw
+
+    ref = Reference.load(walking_reference)
+    q = initial_pose(str(walking_reference), default_pose=True)
+    np.testing.assert_array_equal(q[7:], robot.DEFAULT_JOINT_POS)
+    np.testing.assert_array_equal(q[:3], [*ref.root_pos_w[0, :2], robot.default_qpos()[2]])
+    np.testing.assert_allclose(q[3:7], quat_yaw(ref.root_quat_w[0]), atol=1e-12)
+    np.testing.assert_array_equal(initial_pose(str(walking_reference))[7:], ref.dof_pos[0])
