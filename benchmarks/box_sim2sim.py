@@ -6,15 +6,24 @@ then a Markdown table per run and the count of runs that pass.
                                      [--out DIR] [--domain-id 150] [--sim-arg=ARG ...] [--deploy-arg=ARG ...]
 
 Run k draws with seed SEED + k (``otr sim-robot --object-draw``: ``objects.randomization`` of
-``configs/env/box.yaml``). A policy whose observation needs motion capture (its ONNX metadata:
-``PolicySpec.needs``, e.g. the box task's ``mocap`` actor) runs with ``otr sim-robot
---publish-mocap`` and ``otr deploy --mocap``; ``--mocap`` does so for any policy (the deploy log
-then records the box as captured). ``--sim-arg``/``--deploy-arg`` pass more options to either
-process (``--deploy-arg=--ramp=0.5``). Each run's files go to ``OUT/run_KK/``: the sim robot's
-``sim.json`` (``--stats``) and ``trace.npz`` (``--trace``), the deploy log ``run.npz``, both
-processes' output, and ``done.json`` once it finished; invoked again with the same ``--out``
-(and the same policy, reference, seed and options) it skips the finished runs and runs the
-rest, then prints the table of all of them.
+``configs/env/box.yaml``). The sim robot starts standing in the default pose at the reference's
+first-frame position and heading (``--start-pose default``, as a G1 stands after its gantry
+start-up; ``--start-pose reference`` starts it frozen on the first frame, which topples during
+the runner's ramp where that frame does not balance open loop, e.g. ``otr demo``'s carry); the
+runner uses its defaults (ramp 2 s, blend 1 s, end hold 1 s) with ``--auto-start``. A policy
+whose observation needs motion capture (its ONNX metadata: ``PolicySpec.needs``, e.g. the box
+task's ``mocap`` actor) runs with ``otr sim-robot --publish-mocap`` and ``otr deploy --mocap``;
+``--mocap`` does so for any policy (the deploy log then records the box as captured).
+``--env-set KEY=VALUE`` gives the sim robot the box config the policy was trained with (a training
+run's ``--set env.KEY=VALUE``, e.g. ``objects.grasp_fit_quantile=0``); before the first run the
+box the sim robot would build is checked against the policy's metadata (its collision method,
+grasp-fit narrowing and nominal mass), and a mismatch is refused naming the fields.
+``--sim-arg``/``--deploy-arg`` pass more options to either process (``--deploy-arg=--ramp=0.5``).
+Each run's files go to ``OUT/run_KK/``: the sim robot's ``sim.json`` (``--stats``) and
+``trace.npz`` (``--trace``), the deploy log ``run.npz``, both processes' output, and
+``done.json`` once it finished; invoked again with the same ``--out`` (and the same policy,
+reference, seed and options) it skips the finished runs and runs the rest, then prints the
+table of all of them.
 
 Per run (``run_metrics``; the moving object is the reference's first):
 
@@ -25,7 +34,8 @@ Per run (``run_metrics``; the moving object is the reference's first):
   start-to-end distance towards its end ("—" when the reference moves it less than ``WITHIN_M``);
 - *end error*: distance (cm) and yaw difference (deg) of the box from the reference's last-frame
   pose at the clip's end: the sim trace's sample at the simulated time of the LowState on which
-  the runner's log went TRACK → END (or of its last tracking cycle, if it damped earlier);
+  the runner's log went TRACK → END (if it damped earlier: of its last tracking cycle, or of its
+  last cycle when it never tracked);
 - *≤ 10 cm*: the end error within ``WITHIN_M``;
 - *on table* (references with a static object): at the sim robot's end (after the runner damped
   and stopped) the box touches a static object and not the ground (``end_contacts`` in its stats);
@@ -82,8 +92,35 @@ def clip_seconds(reference: Path) -> float:
     return ref.num_frames / ref.fps
 
 
+def box_mismatch(policy: Path, reference: Path, env_sets: list[str] = ()) -> list[str]:
+    """How the box the sim robot builds from ``reference`` with ``env_sets`` differs from the one
+    the policy was trained with (its metadata's ``objects``: collision method, grasp-fit
+    narrowing, nominal mass); empty when they agree or the metadata does not say."""
+    from agents.deploy.sim_robot import sim_box_config, sim_objects
+    from agents.export import read_metadata
+
+    trained = read_metadata(policy).get("objects")
+    if not trained:
+        return []
+    scene, _, _ = sim_objects(str(reference), cfg=sim_box_config(None, list(env_sets)))
+    out = []
+    for o in scene.objects if scene is not None else ():
+        method = trained.get("collision", {}).get(o.name)
+        if method is not None and method != o.method:
+            out.append(f"{o.name}: collision {o.method}, trained with {method}")
+        shrink = trained.get("grasp_shrink_m", {}).get(o.name)
+        mine = None if o.grasp_shrink_m is None else o.grasp_shrink_m.tolist()
+        if "grasp_shrink_m" in trained and (shrink is None) != (mine is None) or (
+                shrink is not None and mine is not None and not np.allclose(shrink, mine, atol=1e-6)):
+            out.append(f"{o.name}: grasp-fit narrowing {mine} m, trained with {shrink}")
+        mass = trained.get("mass_kg", {}).get(o.name)
+        if not o.static and mass is not None and abs(mass - o.mass_kg) > 1e-9:
+            out.append(f"{o.name}: nominal mass {o.mass_kg:g} kg, trained with {mass:g}")
+    return out
+
+
 def run_once(policy: Path, reference: Path, folder: Path, draw_seed: int, domain: int, mocap: bool,
-             sim_args: list[str] = (), deploy_args: list[str] = ()) -> dict:
+             sim_args: list[str] = (), deploy_args: list[str] = (), start_pose: str = "default") -> dict:
     """One sim2sim run into ``folder``; returns what ``done.json`` records (exit codes, times)."""
     folder.mkdir(parents=True, exist_ok=True)
     for name in SIM_FILES:  # an unfinished run's files go
@@ -96,8 +133,9 @@ def run_once(policy: Path, reference: Path, folder: Path, draw_seed: int, domain
     start = time.time()
     with open(folder / "sim.out", "w") as sim_out, open(folder / "deploy.out", "w") as deploy_out:
         sim = subprocess.Popen([*cli, "sim-robot", *common, "--duration", str(bound), "--idle-exit", "1",
-                                "--object-draw", str(draw_seed), "--stats", str(folder / "sim.json"),
-                                "--trace", str(folder / "trace.npz"), *topic, *sim_args],
+                                "--start-pose", start_pose, "--object-draw", str(draw_seed),
+                                "--stats", str(folder / "sim.json"), "--trace", str(folder / "trace.npz"),
+                                *topic, *sim_args],
                                env=env, cwd=REPO, stdout=sim_out, stderr=subprocess.STDOUT)
         deploy = subprocess.Popen([*cli, "deploy", *common, "--policy", str(policy), "--auto-start",
                                    "--damp-s", "1", "--log", str(folder / "run.npz"), *(["--mocap"] if mocap else []),
@@ -143,15 +181,20 @@ def run_metrics(folder: Path, reference: Path, tables: list[str] | None = None) 
     a = log.arrays
     track = np.flatnonzero(a["stage"] == Stage.TRACK)
     transitions = log.transitions()
+    last = transitions[-1] if transitions else None
+    ended = "none" if last is None else last[3] if last[1] in ("TRACK", "END") else f"{last[3]} in {last[1]}"
     row = {"run": folder.name, "draw_seed": done["draw_seed"], "object": name, "mass_kg": box["mass_kg"],
            "friction": box["friction"], "inertia_scale": box.get("inertia_scale", 1.0),
-           "ended": transitions[-1][3] if transitions else "none", "deploy_rc": done["deploy_rc"],
+           "ended": ended, "deploy_rc": done["deploy_rc"],
            "tracking_s": float(len(track) * log.meta["period_ns"] * 1e-9), "upright": stats["upright"]}
-    # the clip's end: the LowState the runner went TRACK -> END on, or its last tracking cycle
+    # the clip's end: the LowState the runner went TRACK -> END on, or its last tracking cycle, or
+    # (it never tracked) its last cycle with a LowState
     end_cycle = next((int(c) for c, f, to in zip(a["transition_cycle"], a["transition_from"], a["transition_to"],
                                                    strict=True) if f == Stage.TRACK and to == Stage.END), None)
     if end_cycle is None and track.size:
         end_cycle = int(track[-1])
+    if end_cycle is None and a["fresh"].any():
+        end_cycle = int(np.flatnonzero(a["fresh"])[-1])
     sim_s, poses = trace["sim_s"], trace["object_pose"][:, k]
     start = np.asarray(box["start"])
     goal = np.asarray(box["goal"]) if "goal" in box else None
@@ -243,7 +286,12 @@ def main(argv: list[str] | None = None) -> int:
                    "policy does not need it (the deploy log then records the box)")
     p.add_argument("--out", type=Path, default=None, help="folder of the runs (default: a temp folder); the same "
                    "folder again resumes")
+    p.add_argument("--start-pose", choices=("default", "reference"), default="default",
+                   help="otr sim-robot --start-pose: standing in the default pose, or on the reference's first frame")
     p.add_argument("--domain-id", type=int, default=150, help="DDS domain of the runs (one run at a time)")
+    p.add_argument("--env-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a box config key the policy was trained with (otr sim-robot --env-set; e.g. "
+                        "objects.grasp_fit_quantile=0)")
     p.add_argument("--sim-arg", action="append", default=[], help="one more argument to otr sim-robot")
     p.add_argument("--deploy-arg", action="append", default=[], help="one more argument to otr deploy")
     args = p.parse_args(argv)
@@ -259,7 +307,15 @@ def main(argv: list[str] | None = None) -> int:
     mocap = args.mocap or needs_mocap(args.policy)
     config = {"policy": str(args.policy), "policy_sha256": file_sha256(args.policy),
               "reference": str(args.reference), "reference_sha256": file_sha256(args.reference), "seed": args.seed,
-              "mocap": mocap, "sim_args": args.sim_arg, "deploy_args": args.deploy_arg}
+              "mocap": mocap, "start_pose": args.start_pose, "env_set": args.env_set, "sim_args": args.sim_arg,
+              "deploy_args": args.deploy_arg}
+    mismatch = box_mismatch(args.policy, args.reference, args.env_set)
+    if mismatch:
+        print(f"box_sim2sim: the sim robot's objects differ from those {args.policy} was trained with: "
+              f"{'; '.join(mismatch)}. Pass the training run's box settings as --env-set KEY=VALUE (its "
+              "--set env.KEY=VALUE; docs/box.md: the demo carry was learned with objects.grasp_fit_quantile=0)",
+              file=sys.stderr)
+        return 2
     config_file = out / "config.json"
     if config_file.is_file():
         before = json.loads(config_file.read_text())
@@ -271,13 +327,14 @@ def main(argv: list[str] | None = None) -> int:
     config_file.write_text(json.dumps(config, indent=1))
     tables = static_objects(args.reference)
     print(f"box_sim2sim: {args.runs} runs of {args.policy.name} on {args.reference.name} into {out}"
-          f"{' with motion capture' if mocap else ''}", flush=True)
+          f"{' with motion capture' if mocap else ''}, the robot starting on the {args.start_pose} pose", flush=True)
     for k in range(args.runs):
         folder = out / f"run_{k:02d}"
         if (folder / "done.json").is_file():
             continue
-        done = run_once(args.policy, args.reference, folder, args.seed + k, args.domain_id, mocap, args.sim_arg,
-                        args.deploy_arg)
+        sim_args = [a for item in args.env_set for a in ("--env-set", item)] + args.sim_arg
+        done = run_once(args.policy, args.reference, folder, args.seed + k, args.domain_id, mocap, sim_args,
+                        args.deploy_arg, args.start_pose)
         if done["sim_rc"] != 0 or done["deploy_rc"] not in (0, 1) or not (folder / "run.npz").is_file():
             tail = "".join((folder / f).read_text()[-2000:] for f in ("sim.out", "deploy.out") if (folder / f).exists())
             print(f"box_sim2sim: {folder.name} failed (sim-robot exit {done['sim_rc']}, deploy exit "

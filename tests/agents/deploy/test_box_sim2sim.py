@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from agents.deploy.log import DeployLog, start_tilt_error_deg
-from agents.deploy.reference_policy import reference_policy_model, training_metadata
-from agents.deploy.safety import STARTUP_KD, STARTUP_KP, Stage
-from tests.deploy_support import domain_id, save_with_metadata
+from agents.deploy.reference_policy import write_reference_policy
+from agents.deploy.safety import Stage
+from tests.deploy_support import domain_id
 
 from conftest import load_benchmark
 
@@ -29,9 +29,8 @@ def bench():
 @pytest.fixture(scope="module")
 def batch(bench, box_reference, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("box_sim2sim")
-    meta = training_metadata(box_reference, "OTR-G1-BoxTrack-v0", {"observations": {"actor": "mocap"}})
-    meta["joint_stiffness"], meta["joint_damping"] = STARTUP_KP.tolist(), STARTUP_KD.tolist()  # open loop needs them
-    policy = save_with_metadata(reference_policy_model(meta), meta, tmp / "box_mocap.onnx")
+    policy = write_reference_policy(tmp / "box_mocap.onnx", box_reference, "OTR-G1-BoxTrack-v0",
+                                    {"observations": {"actor": "mocap"}})
     out = tmp / "runs"
     args = ["--policy", str(policy), "--reference", str(box_reference), "--runs", "1", "--seed", "5",
             "--out", str(out), "--domain-id", str(domain_id(11)), *SHORT]
@@ -90,3 +89,13 @@ def test_the_batch_resumes_skipping_finished_runs_and_refuses_another_configurat
     other = [a if a != "5" else "6" for a in args]
     assert bench.main(other) == 2
     assert "seed differ" in capsys.readouterr().err
+
+
+def test_a_policy_trained_with_another_box_is_refused_naming_the_difference(batch, box_reference, capsys):
+    bench, args, _, policy = batch
+    assert bench.box_mismatch(policy, box_reference) == []
+    assert bench.box_mismatch(policy, box_reference, ["objects.mass_kg=2"]) == \
+        ["box: nominal mass 2 kg, trained with 1"]
+    capsys.readouterr()
+    assert bench.main([*args, "--env-set", "objects.mass_kg=2"]) == 2
+    assert "box: nominal mass 2 kg, trained with 1" in capsys.readouterr().err
