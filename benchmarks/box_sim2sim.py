@@ -42,7 +42,9 @@ Per run (``run_metrics``; the moving object is the reference's first):
 - *start tilt Δ*: the largest |torso tilt − the reference's| over the first second of tracking
   (``agents.deploy.log.start_tilt_error_deg``; the issue's bound: 10°);
 - *MPJPE*: mean over tracking (root-relative, 14 bodies; the runner's log);
-- *ended*: the runner's last stage change (``clip_end`` when it tracked the whole clip).
+- *ended*: the runner's last stage change (``clip_end`` when it tracked the whole clip);
+- *missed / load*: the runner's missed 50 Hz deadlines (``agents.deploy.log.log_timing``) and the
+  machine's 1-min load average when the run started (loopback DDS timing is sensitive to load).
 
 A run passes when it lifted, carried and set the box within 10 cm (and, with a table, left it on
 the table).
@@ -130,7 +132,7 @@ def run_once(policy: Path, reference: Path, folder: Path, draw_seed: int, domain
     common = ["--interface", "lo", "--domain-id", str(domain), "--reference", str(reference)]
     bound = clip_seconds(reference) + 60.0  # ramp, blend, end hold, damping and start-up, generously
     topic = ["--publish-mocap"] if mocap else []
-    start = time.time()
+    start, load = time.time(), os.getloadavg()[0]
     with open(folder / "sim.out", "w") as sim_out, open(folder / "deploy.out", "w") as deploy_out:
         sim = subprocess.Popen([*cli, "sim-robot", *common, "--duration", str(bound), "--idle-exit", "1",
                                 "--start-pose", start_pose, "--object-draw", str(draw_seed),
@@ -152,6 +154,7 @@ def run_once(policy: Path, reference: Path, folder: Path, draw_seed: int, domain
                     p.kill()
                     p.wait()
     return {"draw_seed": draw_seed, "domain_id": domain, "mocap": mocap, "deploy_rc": deploy_rc, "sim_rc": sim_rc,
+            "load_1min": load,
             "started_at": time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(start)),
             "wall_s": time.time() - start}
 
@@ -168,7 +171,7 @@ def static_objects(reference: Path) -> list[str]:
 
 def run_metrics(folder: Path, reference: Path, tables: list[str] | None = None) -> dict:
     """The table's row of one finished run, from its files (see the module docstring)."""
-    from agents.deploy.log import DeployLog, start_tilt_error_deg
+    from agents.deploy.log import DeployLog, log_timing, start_tilt_error_deg
     from agents.deploy.safety import Stage
 
     stats = json.loads((folder / "sim.json").read_text())
@@ -186,7 +189,8 @@ def run_metrics(folder: Path, reference: Path, tables: list[str] | None = None) 
     row = {"run": folder.name, "draw_seed": done["draw_seed"], "object": name, "mass_kg": box["mass_kg"],
            "friction": box["friction"], "inertia_scale": box.get("inertia_scale", 1.0),
            "ended": ended, "deploy_rc": done["deploy_rc"],
-           "tracking_s": float(len(track) * log.meta["period_ns"] * 1e-9), "upright": stats["upright"]}
+           "tracking_s": float(len(track) * log.meta["period_ns"] * 1e-9), "upright": stats["upright"],
+           "missed_deadlines": log_timing(log)["missed_deadlines"], "load_1min": done.get("load_1min")}
     # the clip's end: the LowState the runner went TRACK -> END on, or its last tracking cycle, or
     # (it never tracked) its last cycle with a LowState
     end_cycle = next((int(c) for c, f, to in zip(a["transition_cycle"], a["transition_from"], a["transition_to"],
@@ -251,7 +255,7 @@ def table(rows: list[dict]) -> str:
     has_table = any(r["on_table"] is not None for r in rows)
     head = ["run", "draw seed", "mass (kg)", "friction", "lifted (rise cm)", "carried", "end error (cm)",
             "yaw error (°)", f"≤ {WITHIN_M * 100:g} cm", *(["on table"] if has_table else []),
-            "start tilt Δ (°)", "MPJPE (mm)", "ended", "pass"]
+            "start tilt Δ (°)", "MPJPE (mm)", "ended", "missed / load", "pass"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         rise = None if r["max_rise_m"] is None else r["max_rise_m"] * 100
@@ -260,7 +264,7 @@ def table(rows: list[dict]) -> str:
                  _num(None if r["end_error_m"] is None else r["end_error_m"] * 100, ".1f"),
                  _num(r["yaw_error_deg"], ".1f"), _yes(r["within"]), *([_yes(r["on_table"])] if has_table else []),
                  _num(r["start_tilt_deg"], ".1f"), _num(r["mpjpe_mm"], ".1f"), r["ended"],
-                 "**yes**" if r["passed"] else "no"]
+                 f"{r['missed_deadlines']} / {_num(r['load_1min'], '.1f')}", "**yes**" if r["passed"] else "no"]
         lines.append("| " + " | ".join(cells) + " |")
     n = len(rows)
     passed, tilt = sum(r["passed"] for r in rows), sum(r["tilt_ok"] for r in rows)

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from agents.deploy.log import DeployLog, start_tilt_error_deg
+from agents.deploy.log import DeployLog, log_timing, start_tilt_error_deg
 from agents.deploy.reference_policy import write_reference_policy
 from agents.deploy.safety import Stage
 from tests.deploy_support import domain_id
@@ -75,6 +75,7 @@ def test_a_run_draws_the_box_and_its_row_comes_from_the_logs(batch, box_referenc
     assert row["start_tilt_deg"] == start_tilt_error_deg(log) < 10.0 and row["tilt_ok"]
     track = log.arrays["stage"] == Stage.TRACK
     assert row["mpjpe_mm"] == pytest.approx(np.nanmean(log.arrays["mpjpe_m"][track]) * 1e3)
+    assert row["missed_deadlines"] == log_timing(log)["missed_deadlines"] and row["load_1min"] == done["load_1min"]
 
 
 def test_the_batch_resumes_skipping_finished_runs_and_refuses_another_configuration(batch, capsys):
@@ -85,6 +86,7 @@ def test_the_batch_resumes_skipping_finished_runs_and_refuses_another_configurat
     assert {p: p.stat().st_mtime_ns for p in (out / "run_00").iterdir()} == files
     text = capsys.readouterr().out
     assert "| run_00 | 5 |" in text and "**0 / 1 runs pass**" in text and "on table" in text
+    assert "| clip_end | " in text
     assert (out / "table.md").read_text().endswith(text.split("\n\n", 1)[1])
     other = [a if a != "5" else "6" for a in args]
     assert bench.main(other) == 2
