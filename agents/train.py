@@ -44,7 +44,6 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import torch
-import yaml
 
 from agents import distributed, runs
 from agents.config import TrainCfg, load_train_config, train_config_from_dict
@@ -55,7 +54,7 @@ from agents.vecenv import RslRlVecEnv, make_vec_env
 from envs.config import TrackEnvCfg, load_env_config
 from envs.config.box import BOX_DEFAULT_ACTOR
 from envs.config.tasks import BOX_TASK
-from otr_gym.config import merge
+from otr_gym.config import merge, parse_sets
 from otr_gym.reference import InvalidReferenceError
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
@@ -82,23 +81,6 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config key by dotted path (YAML value), e.g. "
                         "env.rewards.hand_contact.weight=0; repeatable")
-
-
-def parse_sets(items: list[str]) -> dict:
-    """["a.b=1", "a.c=x"] -> {"a": {"b": 1, "c": "x"}} (values parsed as YAML)."""
-    out: dict = {}
-    for item in items:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--set {item!r}: expected KEY=VALUE with a dotted KEY")
-        *parents, leaf = key.strip().split(".")
-        node = out
-        for part in parents:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise ValueError(f"--set {item!r}: '{part}' is already set to a value")
-        node[leaf] = yaml.safe_load(value)
-    return out
 
 
 def _overrides(args: argparse.Namespace) -> dict:

@@ -35,6 +35,24 @@ def merge(base: dict, extra: dict | None) -> dict:
     return out
 
 
+def parse_sets(items: list[str], flag: str = "--set") -> dict:
+    """["a.b=1", "a.c=x"] -> {"a": {"b": 1, "c": "x"}} (values parsed as YAML); errors name
+    ``flag`` and the item."""
+    out: dict = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"{flag} {item!r}: expected KEY=VALUE with a dotted KEY")
+        *parents, leaf = key.strip().split(".")
+        node = out
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"{flag} {item!r}: '{part}' is already set to a value")
+        node[leaf] = yaml.safe_load(value)
+    return out
+
+
 def from_dict(cls, data: dict, where: str):
     """Instantiate dataclass ``cls`` from a plain mapping, converting nested dataclasses,
     tuples, lists/dicts of dataclasses and numbers; unknown keys raise naming ``where``."""

@@ -29,6 +29,7 @@ try:
 except ImportError as exc:  # the `deploy` extra is optional for training-only installs
     raise ImportError("deployment needs CycloneDDS: pip install 'otr-gym[deploy]' (cyclonedds>=11)") from exc
 
+from agents.deploy.options import name_values
 from otr_gym.rotations import quat_conj, quat_mul, quat_to_rotvec
 
 TOPIC_MOCAP = "rt/otr/mocap"
@@ -92,13 +93,7 @@ def now_ns() -> int:
 
 def name_map(items: list[str] | None) -> dict[str, str]:
     """``--mocap-name POLICY=STREAM`` items as {policy name: stream name}."""
-    out = {}
-    for item in items or ():
-        policy, sep, stream = item.partition("=")
-        if not sep or not policy or not stream:
-            raise ValueError(f"--mocap-name {item!r}: expected POLICY=STREAM (e.g. largebox=box_1)")
-        out[policy] = stream
-    return out
+    return name_values(items, "--mocap-name", "POLICY=STREAM", "largebox=box_1")
 
 
 class MocapFault:

@@ -83,8 +83,11 @@ def reference_policy_model(meta: dict) -> onnx.ModelProto:
     return model
 
 
-def write_reference_policy(out: str | Path, reference) -> Path:
-    meta = training_metadata(reference)
+def write_reference_policy(out: str | Path, reference, task_id: str = "OTR-G1-Track-v0",
+                           env: dict | None = None) -> Path:
+    """The reference player for ``task_id``'s default actor (``env``: config overrides, e.g.
+    {"observations": {"actor": "mocap"}} for the box task's motion-capture actor), at ``out``."""
+    meta = training_metadata(reference, task_id, env)
     meta.update({
         "joint_stiffness": STARTUP_KP.tolist(), "joint_damping": STARTUP_KD.tolist(),
         "reference": {"path": str(reference)},
@@ -104,6 +107,11 @@ def configure_parser(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("out", help="output .onnx (written atomically)")
     parser.add_argument("--reference", default=None,
                         help="reference whose env builds the observation layout (default: a generated standing clip)")
+    parser.add_argument("--task", default="OTR-G1-Track-v0", choices=("OTR-G1-Track-v0", "OTR-G1-BoxTrack-v0"),
+                        help="the env whose actor's observation layout the graph takes (the box task needs a "
+                             "--reference with objects; default: %(default)s)")
+    parser.add_argument("--box-actor", default=None, choices=("perception_free", "mocap"),
+                        help="with the box task: its actor (default: configs/env/box.yaml's, perception_free)")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -114,8 +122,12 @@ def main(args: argparse.Namespace) -> int:
         from agents.procedural import standing_reference
 
         reference = standing_reference()
+    env = None if args.box_actor is None else {"observations": {"actor": args.box_actor}}
+    if env is not None and args.task != "OTR-G1-BoxTrack-v0":
+        print("otr reference-policy: --box-actor needs --task OTR-G1-BoxTrack-v0", file=sys.stderr)
+        return 2
     try:
-        path = write_reference_policy(args.out, reference)
+        path = write_reference_policy(args.out, reference, args.task, env)
     except (OSError, ValueError) as exc:
         print(f"otr reference-policy: {exc}", file=sys.stderr)
         return 2

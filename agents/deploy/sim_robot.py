@@ -26,7 +26,11 @@ Objects: given a reference with objects (``--reference``), the sim robot simulat
 box environment builds them (``envs.box.box_scene``: the same collision shapes, grasp-fitted
 boxes, the nominal mass and friction of ``configs/env/box.yaml``, moving objects free and static
 ones fixed), each at its pose on the reference's first frame; ``--stats`` and ``--trace`` record
-their poses, and the stats say how far each moving object ended from the reference's last frame.
+their poses, and the stats say how far each moving object ended from the reference's last frame
+and what it touched at the end. ``--object-draw SEED`` draws the moving objects' friction, mass
+and inertia as the box environment does in training (``objects.randomization`` of
+``configs/env/box.yaml``, ``envs.mdp.randomization.draw_object``); ``--object-mass NAME=KG`` and
+``--object-friction NAME=MU`` set them (over a draw); the stats record the values used.
 
 Motion capture: ``--publish-mocap [TOPIC]`` publishes what a marker system would see (the pelvis
 and every object, ``SimRobot.capture``) at ``--mocap-rate`` Hz, ``--mocap-latency-ms`` late and with
@@ -39,6 +43,7 @@ accepted and dropped, real-time factor, step timing, whether the robot stayed up
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import signal
 import sys
@@ -59,10 +64,11 @@ from agents.deploy.messages import (
     joint_command,
 )
 from agents.deploy.mocap import BASE_BODY, TOPIC_MOCAP, MocapFrame, mocap_message, now_ns
+from agents.deploy.options import name_values, positive_float
 from agents.deploy.safety import STARTUP_KD
 from otr_gym import robot
 from otr_gym.io import save_npz, write_json
-from otr_gym.rotations import quat_apply, quat_error_angle, quat_from_yaw, quat_mul, quat_to_matrix
+from otr_gym.rotations import quat_apply, quat_error_angle, quat_from_yaw, quat_mul, quat_to_matrix, quat_yaw
 
 UPRIGHT_MIN_PELVIS_Z = 0.5  # m: below this (or tilted past UPRIGHT_MAX_TILT) the robot has fallen
 UPRIGHT_MAX_TILT = np.radians(60.0)
@@ -83,6 +89,20 @@ class SimRobotCfg:
     harness_stiffness: float = 500.0  # N·m/rad: the harness keeps the torso upright while hanging
     harness_damping: float = 50.0  # N·m·s/rad
     yaw_rad: float = 0.0  # initial heading (the runner must align to it)
+
+
+@dataclass(frozen=True)
+class ObjectProperties:
+    """A moving object's physical properties in the sim robot: its mass (kg), the sliding
+    friction of its collision geoms and a scale on its inertia beyond the mass's (the inertia
+    of the collision geometry at uniform density, × mass / nominal mass × ``inertia_scale``, as
+    ``envs.mdp.randomization.randomize_objects`` sets it); ``source``: "nominal", "drawn" or
+    "set" (an option gave the mass or the friction)."""
+
+    mass_kg: float
+    friction: float
+    inertia_scale: float = 1.0
+    source: str = "nominal"
 
 
 def motorised_model(physics_hz: float, terrain=None, objects=None, condim: int = 3) -> mujoco.MjModel:
@@ -129,9 +149,14 @@ class SimRobot:
     """The physics and the message content, without the transport."""
 
     def __init__(self, cfg: SimRobotCfg, initial_qpos: np.ndarray | None = None, terrain=None, objects=None,
-                 condim: int = 3):
+                 condim: int = 3, properties: dict[str, ObjectProperties] | None = None):
         self.cfg = cfg
         self.model = motorised_model(cfg.physics_hz, terrain, objects, condim)
+        #: name -> the properties each moving object is simulated with (``ObjectProperties``)
+        self.object_properties = {o.name: ObjectProperties(o.mass_kg, o.friction)
+                                  for o in (objects.objects if objects is not None else ()) if not o.static}
+        for name, props in (properties or {}).items():
+            self._set_object_properties(objects, name, props)
         self.data = mujoco.MjData(self.model)
         qpos = robot.default_qpos() if initial_qpos is None else np.array(initial_qpos, dtype=np.float64)
         yaw = quat_from_yaw(np.float64(cfg.yaw_rad))
@@ -161,6 +186,38 @@ class SimRobot:
         self.tau = np.zeros(robot.NUM_JOINTS)
         self.msg = LowState_(mode_machine=MODE_MACHINE,
                              motor_state=[MotorState_(mode=MOTOR_MODE_ENABLE) for _ in range(35)])
+
+    def _set_object_properties(self, objects, name: str, props: ObjectProperties) -> None:
+        """Give the moving object ``name`` its mass, inertia and friction as the training env's
+        randomisation does (``envs.mdp.randomization.randomize_objects`` on the compiled model)."""
+        if name not in self.object_properties:
+            raise ValueError(f"no moving object '{name}' (moving: {sorted(self.object_properties) or 'none'})")
+        m = self.model
+        (obj,) = [o for o in objects.objects if o.name == name]
+        body = m.body(obj.body).id
+        m.body_inertia[body] *= props.inertia_scale * props.mass_kg / m.body_mass[body]
+        m.body_mass[body] = props.mass_kg
+        for g in range(m.ngeom):
+            if m.geom_bodyid[g] == body and (m.geom_contype[g] or m.geom_conaffinity[g]):
+                m.geom_friction[g, 0] = props.friction
+        self.object_properties[name] = props
+
+    def object_contacts(self) -> dict[str, list[str]]:
+        """Per moving object, what it touches now (sorted): "ground" (the ground plane and any
+        terrain), "robot", and other objects by name."""
+        m, d = self.model, self.data
+        owner = {m.body(o.body).id: o.name for o in self.moving} | dict((b, n) for n, b in self._static_bodies)
+        out: dict[str, set[str]] = {name: set() for name in self.object_properties}
+
+        def what(body: int) -> str:
+            return owner.get(body) or ("ground" if body == 0 else "robot")
+
+        for c in d.contact[: d.ncon]:
+            a, b = what(int(m.geom_bodyid[c.geom1])), what(int(m.geom_bodyid[c.geom2]))
+            for x, y in ((a, b), (b, a)):
+                if x in out and y != x:
+                    out[x].add(y)
+        return {name: sorted(v) for name, v in out.items()}
 
     @property
     def time_s(self) -> float:
@@ -416,13 +473,19 @@ class Bridge:
 def object_summary(sim: SimRobot, poses: np.ndarray) -> dict:
     """Per moving object: where it started and ended (m, wxyz), its lowest and highest centre
     over the run (m) and, where ``sim.object_goals`` gives the reference's last-frame pose, the
-    distance (m) and angle (deg) of the end from it. ``poses`` (T, M, 7) the 50 Hz trace."""
+    distance (m) and angle (deg) of the end from it; what it touches at the end
+    (``SimRobot.object_contacts``); the mass, friction and inertia scale it was simulated with.
+    ``poses`` (T, M, 7) the 50 Hz trace."""
     out = {}
     now = sim.object_poses()
+    contacts = sim.object_contacts()
     for k, o in enumerate(sim.moving):
         track = poses[:, k] if len(poses) else now[k][None]
-        entry = {"mass_kg": o.mass_kg, "friction": o.friction, "start": track[0].tolist(), "end": now[k].tolist(),
-                 "min_z_m": float(track[:, 2].min()), "max_z_m": float(track[:, 2].max())}
+        props = sim.object_properties[o.name]
+        entry = {"mass_kg": props.mass_kg, "friction": props.friction, "inertia_scale": props.inertia_scale,
+                 "properties": props.source, "start": track[0].tolist(), "end": now[k].tolist(),
+                 "min_z_m": float(track[:, 2].min()), "max_z_m": float(track[:, 2].max()),
+                 "end_contacts": contacts[o.name]}
         goal = sim.object_goals.get(o.name)
         if goal is not None:
             entry["goal"] = goal.tolist()
@@ -432,40 +495,107 @@ def object_summary(sim: SimRobot, poses: np.ndarray) -> dict:
     return out
 
 
-def initial_pose(reference: str | None) -> np.ndarray | None:
-    """qpos of the reference's first frame (root and joints), or None for the default pose."""
+def initial_pose(reference: str | None, default_pose: bool = False) -> np.ndarray | None:
+    """qpos of the reference's first frame (root and joints), or None for the default pose.
+    With ``default_pose``: the G1's default standing pose at the first frame's root x, y and
+    heading (where a robot stands after its gantry start-up; a clip whose first frame does not
+    balance open loop, such as ``otr demo``'s carry, topples the robot during the runner's ramp)."""
     if reference is None:
         return None
     from otr_gym.reference import Reference
 
     ref = Reference.load(reference)
+    if default_pose:
+        qpos = robot.default_qpos()
+        qpos[:2] = ref.root_pos_w[0, :2]
+        qpos[3:7] = quat_mul(quat_yaw(ref.root_quat_w[0]), qpos[3:7])
+        return qpos
     return np.concatenate([ref.root_pos_w[0], ref.root_quat_w[0], ref.dof_pos[0]])
 
 
-def sim_objects(reference: str | None, object_meshes: list[str] | None = None):
+def sim_box_config(object_meshes: list[str] | None = None, env_sets: list[str] | None = None):
+    """The box environment's config the sim robot builds its objects and draws with:
+    ``configs/env/box.yaml`` with ``env_sets`` ("KEY=VALUE", dotted keys of that file, as a
+    training run's ``--set env.KEY=VALUE``, e.g. objects.grasp_fit_quantile=0) and
+    ``object_meshes`` ("NAME=FILE": a mesh for an object the file does not embed, Holosoma's)."""
+    from envs.config import load_box_config
+    from otr_gym.config import merge, parse_sets
+
+    overrides = {name: {"mesh": mesh} for name, mesh in
+                 name_values(object_meshes, "--object-mesh", "NAME=FILE", "largebox=largebox.obj").items()}
+    try:
+        return load_box_config(None, merge(parse_sets(env_sets or [], "--env-set"),
+                                           {"objects": {"overrides": overrides}} if overrides else None))
+    except (TypeError, KeyError, ValueError) as exc:  # a key the config does not have, a wrong type
+        raise ValueError(f"--env-set {' '.join(env_sets or [])}: {exc}") from exc
+
+
+def sim_objects(reference: str | None, object_meshes: list[str] | None = None, cfg=None):
     """(``envs.objects.SceneObjects`` or None, contact dimension, name -> (7,) last-frame pose of
     each moving object) of a reference's objects, built as the box environment builds them
-    (``envs.box.box_scene`` with ``configs/env/box.yaml``); ``object_meshes`` ("NAME=FILE")
-    give a mesh to an object the file does not embed (Holosoma's references)."""
+    (``envs.box.box_scene`` with ``cfg``, default ``sim_box_config(object_meshes)``: configs/env/box.yaml
+    with the meshes ``object_meshes`` ("NAME=FILE") give objects the file does not embed)."""
     if reference is None:
         return None, 3, {}
     from envs.box import box_scene
-    from envs.config import load_box_config
     from otr_gym.reference import Reference
 
     if not Reference.load(reference).objects:
         return None, 3, {}
-    overrides = {}
-    for item in object_meshes or ():
-        name, sep, mesh = item.partition("=")
-        if not sep or not name or not mesh:
-            raise ValueError(f"--object-mesh {item!r}: expected NAME=FILE")
-        overrides[name] = {"mesh": mesh}
-    cfg = load_box_config(None, {"objects": {"overrides": overrides}} if overrides else None)
+    cfg = sim_box_config(object_meshes) if cfg is None else cfg
     refs, _, scene, _, _ = box_scene(reference, cfg)
     goals = {t.name: np.concatenate([t.pos_w[-1], t.quat_w[-1]]) for t in refs[0].objects
              if any(o.name == t.name for o in scene.moving)}
     return scene, cfg.objects.condim, goals
+
+
+def object_properties(scene, masses: dict[str, float] | None = None, frictions: dict[str, float] | None = None,
+                      draw_seed: int | None = None, randomization=None) -> dict[str, ObjectProperties]:
+    """What each moving object of ``scene`` (``sim_objects``) is simulated with: nominal, or
+    with ``draw_seed`` drawn as the box environment draws them in training (its
+    ``objects.randomization``, default ``configs/env/box.yaml``'s; ``envs.mdp.randomization
+    .draw_object`` from ``torch.Generator().manual_seed(draw_seed)``, one draw per object in
+    order, as ``randomize_objects`` for one env), then ``masses`` (kg) and ``frictions`` by name
+    over that. Empty when nothing changes the nominal values. A name that is not a moving object
+    of the scene, or a draw without objects, raises ``ValueError``."""
+    masses, frictions = masses or {}, frictions or {}
+    moving = [o.name for o in scene.moving] if scene is not None else []
+    static = [o.name for o in scene.static] if scene is not None else []
+    for flag, given in (("--object-mass", masses), ("--object-friction", frictions)):
+        unknown = sorted(set(given) - set(moving))
+        if unknown:
+            raise ValueError(f"{flag}: {', '.join(unknown)} is not a moving object of the reference (moving: "
+                             f"{', '.join(moving) or 'none'}" + (f"; static, not changed: {', '.join(static)}"
+                                                                  if static else "") + ")")
+    if draw_seed is not None and not moving:
+        raise ValueError("--object-draw: the reference has no moving objects to draw for (or --no-objects)")
+    if draw_seed is None and not masses and not frictions:
+        return {}
+    generator = None
+    if draw_seed is not None:
+        import torch
+
+        if randomization is None:
+            from envs.config import load_box_config
+
+            randomization = load_box_config().objects.randomization
+        generator = torch.Generator().manual_seed(int(draw_seed))
+    out = {}
+    for o in scene.moving:
+        mass, friction, scale, source = o.mass_kg, o.friction, 1.0, []
+        if generator is not None:
+            from envs.mdp.randomization import draw_object
+
+            friction, mass, scale = draw_object(randomization, o.mass_kg, 1, generator)[0].tolist()
+            source.append("drawn")
+        if o.name in masses:
+            mass = masses[o.name]
+            source.append("mass set")
+        if o.name in frictions:
+            friction = frictions[o.name]
+            source.append("friction set")
+        out[o.name] = ObjectProperties(float(mass), float(friction), float(scale), ", ".join(source) or "nominal")
+    return out
 
 
 def sim_terrain(terrain: str, reference: str | None):
@@ -497,9 +627,23 @@ def configure_parser(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain-id", type=int, default=0, help="DDS domain id (the G1 uses 0; default: %(default)s)")
     p.add_argument("--reference", default=None, help="start on this reference's first frame, its objects too "
                    "(default: default pose, no objects)")
+    p.add_argument("--start-pose", choices=("reference", "default"), default="reference",
+                   help="with --reference: start on its first frame, or standing in the default pose at its first "
+                        "frame's x, y and heading, as after a gantry start-up (default: %(default)s)")
     p.add_argument("--no-objects", action="store_true", help="do not simulate the reference's objects")
     p.add_argument("--object-mesh", action="append", default=None, metavar="NAME=FILE",
                    help="mesh of an object the reference does not embed (e.g. Holosoma's: largebox=largebox.obj)")
+    p.add_argument("--env-set", action="append", default=None, metavar="KEY=VALUE",
+                   help="a key of configs/env/box.yaml (dotted) for the objects and their draws, as the policy's "
+                        "training run set it with --set env.KEY=VALUE (e.g. objects.grasp_fit_quantile=0)")
+    p.add_argument("--object-draw", type=int, default=None, metavar="SEED",
+                   help="draw the moving objects' friction, mass and inertia from this seed as the box environment "
+                        "does in training (objects.randomization of configs/env/box.yaml); --stats records them "
+                        "(default: the nominal mass and friction)")
+    p.add_argument("--object-mass", action="append", default=None, metavar="NAME=KG",
+                   help="mass of a moving object (kg, > 0; inertia scaled with it), over --object-draw's")
+    p.add_argument("--object-friction", action="append", default=None, metavar="NAME=MU",
+                   help="sliding friction of a moving object's geoms (> 0), over --object-draw's")
     p.add_argument("--terrain", default=None, help="simulate this terrain: a mesh file (m, the reference's world "
                    "frame), or a run folder (the terrain its config gives --reference's clip)")
     p.add_argument("--gantry", action="store_true", help="hang the robot in a virtual gantry until --gantry-release")
@@ -540,10 +684,17 @@ def main(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        objects, condim, goals = (None, 3, {}) if args.no_objects else sim_objects(args.reference, args.object_mesh)
+        box_cfg = sim_box_config(args.object_mesh, args.env_set) if args.reference is not None else None
+        objects, condim, goals = (None, 3, {}) if args.no_objects else sim_objects(args.reference, cfg=box_cfg)
+        masses = name_values(args.object_mass, "--object-mass", "NAME=KG", "box=2.5", positive_float)
+        frictions = name_values(args.object_friction, "--object-friction", "NAME=MU", "box=0.9", positive_float)
+        randomization = None if args.object_draw is None or box_cfg is None else box_cfg.objects.randomization
+        properties = object_properties(objects, masses, frictions, args.object_draw, randomization)
+        start = initial_pose(args.reference, args.start_pose == "default")
         sim = SimRobot(SimRobotCfg(physics_hz=args.physics_hz, gantry=args.gantry, gantry_release_s=args.gantry_release,
-                                   yaw_rad=float(np.radians(args.yaw))), initial_pose(args.reference),
-                       None if args.terrain is None else sim_terrain(args.terrain, args.reference), objects, condim)
+                                   yaw_rad=float(np.radians(args.yaw))), start,
+                       None if args.terrain is None else sim_terrain(args.terrain, args.reference), objects, condim,
+                       properties)
         sim.object_goals = goals if not args.yaw else {}  # a turned scene has no goal in the reference's frame
         if args.mocap_rate <= 0 or args.mocap_latency_ms < 0 or args.mocap_noise_m < 0:
             raise ValueError(f"--mocap-rate {args.mocap_rate:g} must be > 0, --mocap-latency-ms "
@@ -562,11 +713,17 @@ def main(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, bridge.stop)
     print(f"sim-robot: G1 on domain {args.domain_id}, interface {args.interface}, {args.physics_hz:g} Hz physics"
           f"{', gantry' if args.gantry else ', frozen until the first LowCmd'}"
-          + "".join(f", {o.name} ({o.method}, {o.mass_kg:g} kg, friction {o.friction:g})" for o in sim.moving)
+          + "".join(f", {o.name} ({o.method}, {p.mass_kg:.3g} kg, friction {p.friction:.3g}, {p.source})"
+                    for o in sim.moving for p in [sim.object_properties[o.name]])
           + (f", mocap on {mocap.topic} ({mocap.rate_hz:g} Hz, {mocap.latency_ms:g} ms, {mocap.noise_m:g} m)"
              if mocap is not None else ""), flush=True)
     bridge.run(args.duration)
     summary = bridge.summary()
+    if randomization is not None:
+        summary["object_draw"] = {"seed": args.object_draw, "config": "configs/env/box.yaml objects.randomization",
+                                  **dataclasses.asdict(randomization)}
+    if args.env_set:
+        summary["env_set"] = list(args.env_set)
     if args.stats:
         write_json(args.stats, summary)
     if args.trace:

@@ -77,18 +77,29 @@ def randomize_objects(backend: PhysicsBackend, bodies: Sequence[str], mass_kg: S
     (nominal + U[mass_add_kg]) and its inertia (× U[inertia_scale]). Returns the draws."""
     n, m = backend.num_worlds, backend.model
     out = {}
-
-    def uniform(lo: float, hi: float) -> torch.Tensor:
-        return lo + (hi - lo) * torch.rand(n, device=backend.device, generator=generator)
-
     for body, mass in zip(bodies, mass_kg, strict=True):
         bid = backend.body_ids([body])[0]
         geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == bid and (m.geom_contype[g] or m.geom_conaffinity[g])]
-        friction = uniform(*cfg.friction_range)
+        draws = draw_object(cfg, mass, n, generator, backend.device)
+        friction, added, scale = draws.unbind(-1)
         backend.set_geom_friction(geoms, friction[:, None].expand(-1, len(geoms)))
-        added = mass + uniform(*cfg.mass_add_kg)
-        scale = uniform(*cfg.inertia_scale)
         # the MJCF inertia belongs to the nominal mass: scale it with the mass, then by the draw
         backend.set_body_mass(bid, added, scale * added / mass)
-        out[body] = torch.stack([friction, added, scale], dim=-1)
+        out[body] = draws
     return out
+
+
+def draw_object(cfg: ObjectRandomizationCfg, mass_kg: float, n: int, generator: torch.Generator,
+                device: torch.device | str = "cpu") -> torch.Tensor:
+    """(n, 3) one object's draws, as ``randomize_objects`` makes them (and in its order from
+    ``generator``): friction U[friction_range], mass = ``mass_kg`` + U[mass_add_kg], inertia
+    scale U[inertia_scale] (on top of the inertia scaled with the mass). ``otr sim-robot
+    --object-draw`` draws with it too."""
+
+    def uniform(lo: float, hi: float) -> torch.Tensor:
+        return lo + (hi - lo) * torch.rand(n, device=device, generator=generator)
+
+    friction = uniform(*cfg.friction_range)
+    added = mass_kg + uniform(*cfg.mass_add_kg)
+    scale = uniform(*cfg.inertia_scale)
+    return torch.stack([friction, added, scale], dim=-1)

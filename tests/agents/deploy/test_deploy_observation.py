@@ -120,3 +120,18 @@ def test_a_box_actor_that_observes_the_object_pose_is_refused_without_motion_cap
         ObservationBuilder(spec, box_reference)
     with pytest.raises(PolicySpecError, match="object_pos_b, object_ori_b need the object's pose.*run with --mocap"):
         ObservationBuilder(spec, box_reference, frozenset({ESTIMATOR}))  # the robot's pose only
+
+
+def test_the_reference_policy_takes_the_box_tasks_actors(tmp_path, box_reference, capsys):
+    from otr_gym import cli
+
+    out = tmp_path / "box.onnx"
+    assert cli.main(["reference-policy", str(out), "--reference", str(box_reference), "--task",
+                     "OTR-G1-BoxTrack-v0", "--box-actor", "mocap"]) == 0
+    spec = PolicySpec.from_onnx(out)
+    expected = training_metadata(box_reference, "OTR-G1-BoxTrack-v0", {"observations": {"actor": "mocap"}})
+    assert [n for n, _ in spec.observation_layout] == [t["name"] for t in expected["observation_layout"]]
+    assert "object_pos_b" in spec.needs() and spec.kp[0] == 350  # start-up gains: open loop needs them
+    capsys.readouterr()
+    assert cli.main(["reference-policy", str(tmp_path / "x.onnx"), "--box-actor", "mocap"]) == 2
+    assert "--box-actor needs --task OTR-G1-BoxTrack-v0" in capsys.readouterr().err
