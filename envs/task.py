@@ -291,8 +291,13 @@ class TrackingTask:
              valid: torch.Tensor) -> dict:
         """Means over the ``valid`` (finite) envs as 0-d device tensors (call ``.item()`` only
         when writing a log)."""
-        log = {f"reward/{n}": masked_mean(v, valid) for n, v in terms.items()}
-        log.update({f"termination/{n}": v.float().mean() for n, v in fired.items()})
+        # one reduction for all reward terms and one for all terminations (a kernel each, not one per term)
+        log: dict = {}
+        if terms:
+            rewards = torch.where(valid, torch.stack(list(terms.values())), 0.0).sum(-1) / valid.sum().clamp_min(1)
+            log.update({f"reward/{n}": rewards[i] for i, n in enumerate(terms)})
+        rates = torch.stack(list(fired.values())).float().mean(-1)
+        log.update({f"termination/{n}": rates[i] for i, n in enumerate(fired)})
         log["metric/anchor_pos_error_m"] = masked_mean(torch.linalg.norm(s.ref_anchor_pos_w - s.anchor_pos_w, dim=-1),
                                                        valid)
         log["metric/body_pos_error_m"] = masked_mean(torch.linalg.norm(s.ref_body_pos_aligned_w - s.body_pos_w, dim=-1),
