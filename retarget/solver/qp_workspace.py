@@ -143,7 +143,7 @@ def elastic_ipm(H, g, C, lower, box_lo, box_hi, rho: float, tol: float = 1e-11,
     the smallest residuals, if within 100 × tol (5 iterations without a better one end it). On the
     dumped failures of ``walk_musical_002`` 15–40 iterations, the merit at or below the working
     set's answer."""
-    n, m = H.shape[0], C.shape[0]
+    n = H.shape[0]
     lo_i, hi_i = np.flatnonzero(box_lo > -1e19), np.flatnonzero(box_hi < 1e19)
     blo, bhi = box_lo[lo_i], box_hi[hi_i]
 
@@ -191,8 +191,10 @@ def elastic_ipm(H, g, C, lower, box_lo, box_hi, rho: float, tol: float = 1e-11,
             factor = np.linalg.cholesky(m_x)
         except np.linalg.LinAlgError:
             factor = np.linalg.cholesky(m_x + 1e-12 * max(1.0, float(np.abs(np.diag(m_x)).max())) * np.eye(n))
+        system = (t, d, rp, rd_x, rd_s, factor, s_diag)
 
-        def newton(target):  # target: the complementarity each block aims at, per element
+        def newton(target, system=system):  # target: the complementarity each block aims at, per element
+            t, d, rp, rd_x, rd_s, factor, s_diag = system
             v = [ci / ti - di * ri for ci, ti, di, ri in zip(target, t, d, rp)]
             r_x, r_s = a_transpose(v)
             r_x, r_s = r_x - rd_x, r_s - rd_s
@@ -201,21 +203,23 @@ def elastic_ipm(H, g, C, lower, box_lo, box_hi, rho: float, tol: float = 1e-11,
             a_dz = [C @ dx + ds, ds, dx[lo_i], -dx[hi_i]]
             return dx, ds, [a + ri for a, ri in zip(a_dz, rp)], [vi - di * a for vi, di, a in zip(v, d, a_dz)]
 
-        def longest(values, steps) -> float:
-            alpha = 1.0
-            for vi, di in zip(values, steps):
-                neg = di < 0
-                if neg.any():
-                    alpha = min(alpha, float(np.min(-vi[neg] / di[neg])))
-            return alpha
-
         _, _, dt, dy = newton([-ti * yi for ti, yi in zip(t, y)])  # affine predictor
-        ap, ad = longest(t, dt), longest(y, dy)
+        ap, ad = _longest_step(t, dt), _longest_step(y, dy)
         mu_aff = sum(float((ti + ap * a) @ (yi + ad * b)) for ti, a, yi, b in zip(t, dt, y, dy)) / count
         sigma = (mu_aff / mu) ** 3
         dx, ds, dt, dy = newton([sigma * mu - ti * yi - a * b for ti, yi, a, b in zip(t, y, dt, dy)])
-        alpha = min(1.0, 0.995 * min(longest(t, dt), longest(y, dy)))
+        alpha = min(1.0, 0.995 * min(_longest_step(t, dt), _longest_step(y, dy)))
         x, s = x + alpha * dx, s + alpha * ds
         t = [ti + alpha * a for ti, a in zip(t, dt)]
         y = [yi + alpha * b for yi, b in zip(y, dy)]
     return best[1] if best[0] <= 100.0 * tol else None
+
+
+def _longest_step(values: list[np.ndarray], steps: list[np.ndarray]) -> float:
+    """The largest α ≤ 1 with every values + α·steps ≥ 0."""
+    alpha = 1.0
+    for vi, di in zip(values, steps):
+        neg = di < 0
+        if neg.any():
+            alpha = min(alpha, float(np.min(-vi[neg] / di[neg])))
+    return alpha
