@@ -144,6 +144,13 @@ class SolverConfig:
     #: Our choice: an object closer than this to a robot link is "held" and the warm start of
     #: the next frame moves it rigidly with the robot (``warm_start``).
     hold_distance_m: float = 0.01
+    #: Ours: the warm start also moves each foot that is not planted (in stance at t − 1 and t)
+    #: by the person's displacement of that foot, on its leg's joints
+    #: (``retarget.solver.leg_seed.carry_swing_feet``). Left where the rigid warm start puts it,
+    #: a swing foot fell behind the frame's optimum by the 3-step budget's shortfall every frame
+    #: and caught up in one when a stance or roll-off flag changed (Bandai's walk: 16.7 cm limb
+    #: jumps; docs/results/feasibility.md, *Why a swing foot jumps*). False: the rigid warm start.
+    carry_swing_feet: bool = True
     #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
     previous_frame_weight: float = 1.0
     #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).
