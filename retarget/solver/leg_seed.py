@@ -17,6 +17,8 @@ second-order drop of a pitched foot's toe as a penetration; the steps after it m
 optimum by a few centimetres every frame (Bandai's walk: 30-40 cm by the end of a swing) and
 catches up in one frame as soon as a stance or roll-off flag changes the rows: the 16-17 cm
 jumps of that clip. Started from the person's displacement, the SQP only corrects.
+``SolverConfig.carry_swing_feet`` switches the carry on; it is off by default (its cost in
+time and contact fidelity: the same section).
 """
 
 from __future__ import annotations

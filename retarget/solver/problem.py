@@ -147,10 +147,13 @@ class SolverConfig:
     #: Ours: the warm start also moves each foot that is not planted (in stance at t − 1 and t)
     #: by the person's displacement of that foot, on its leg's joints
     #: (``retarget.solver.leg_seed.carry_swing_feet``). Left where the rigid warm start puts it,
-    #: a swing foot fell behind the frame's optimum by the 3-step budget's shortfall every frame
-    #: and caught up in one when a stance or roll-off flag changed (Bandai's walk: 16.7 cm limb
-    #: jumps; docs/results/feasibility.md, *Why a swing foot jumps*). False: the rigid warm start.
-    carry_swing_feet: bool = True
+    #: a swing foot falls behind the frame's optimum by the 3-step budget's shortfall every frame
+    #: and catches up in one frame when a stance or roll-off flag changes (Bandai's shared walk:
+    #: its 16.7 cm limb jump). Off: on 12 Bandai clips it halves the median limb-jump peak
+    #: (24.1 -> 10.9 cm), but the solve takes 8-20 % more CPU time a frame (Bandai walks, box
+    #: carry), the box's object J falls 89.6 -> 89.3 % and the jog's ground J 99.6 -> 98.9 %
+    #: (docs/results/feasibility.md, *Why a swing foot jumps*).
+    carry_swing_feet: bool = False
     #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
     previous_frame_weight: float = 1.0
     #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).
