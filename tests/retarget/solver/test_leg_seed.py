@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from otr_gym import robot
-from retarget.inputs.readers import load_demonstration
 from retarget.clip import problem_from_config
 from retarget.config import RetargetConfig
+from retarget.inputs.readers import load_demonstration
 from retarget.solver.problem import resample_demonstration
 from retarget.solver.sqp import solve_sequence
 
