@@ -144,6 +144,16 @@ class SolverConfig:
     #: Our choice: an object closer than this to a robot link is "held" and the warm start of
     #: the next frame moves it rigidly with the robot (``warm_start``).
     hold_distance_m: float = 0.01
+    #: Ours: the warm start also moves each foot that is not planted (in stance at t − 1 and t)
+    #: by the person's displacement of that foot, on its leg's joints
+    #: (``retarget.solver.leg_seed.carry_swing_feet``). Left where the rigid warm start puts it,
+    #: a swing foot falls behind the frame's optimum by the 3-step budget's shortfall every frame
+    #: and catches up in one frame when a stance or roll-off flag changes (Bandai's shared walk:
+    #: its 16.7 cm limb jump). Off: on 12 Bandai clips it halves the median limb-jump peak
+    #: (24.1 -> 10.9 cm), but the solve takes 8-20 % more CPU time a frame (Bandai walks, box
+    #: carry), the box's object J falls 89.6 -> 89.3 % and the jog's ground J 99.6 -> 98.9 %
+    #: (docs/results/feasibility.md, *Why a swing foot jumps*).
+    carry_swing_feet: bool = False
     #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
     previous_frame_weight: float = 1.0
     #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).

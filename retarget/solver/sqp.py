@@ -30,11 +30,12 @@ import pinocchio as pin
 from threadpoolctl import threadpool_limits
 
 from otr_gym import robot
-from otr_gym.rotations import so3_exp, so3_log
+from otr_gym.rotations import so3_exp
 from retarget.geometry.kinematics import NUM_LINKS
 from retarget.solver.arm_seed import arm_links, seed_arms
 from retarget.solver.contact_annotation import frame_contacts
 from retarget.solver.iterate import FrameStats, SectionTimer, SolverState, frames_at, new_state, retract
+from retarget.solver.leg_seed import carry_swing_feet, replant_feet
 from retarget.solver.problem import Problem
 from retarget.solver.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
 from retarget.solver.rows import linearise
@@ -165,49 +166,6 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
             state.obj_rot[i] = tr.rot_w[t] @ tr.rot_w[t - 1].T @ state.obj_rot[i]
 
 
-#: The six leg joints of each G1 foot link (indices into the 29 joints), by name from the spec.
-_LEG_JOINTS = {f"{side}_ankle_roll_link": robot.joint_indices(
-    [f"{side}_{j}_joint" for j in ("hip_pitch", "hip_roll", "hip_yaw", "knee", "ankle_pitch", "ankle_roll")])
-    for side in ("left", "right")}
-
-
-def replant_feet(problem: Problem, state: SolverState, t: int, iterations: int = 2) -> None:
-    """Bring the feet planted at t − 1 and still in stance at t back to their previous poses
-    after the warm start moved the base: a few damped Gauss–Newton steps on each leg's six
-    joints (link Jacobians), within the joint limits.
-
-    The warm start moves the robot rigidly with the person's pelvis, planted feet included; the
-    stance rows then open each frame centimetres off their targets (a merit of ~10² at 10⁶ per
-    m²), which took the SQP its whole iteration budget in one frame out of two."""
-    if state.prev is None or t == 0:
-        return
-    feet = [(f, link) for f, link in enumerate(problem.feet) if problem.stance[t - 1, f] and problem.stance[t, f]]
-    if not feet:
-        return
-    before = frames_at(problem, state, state.prev[0])
-    targets = {link: (before.rot[link].copy(), before.pos[link].copy()) for _, link in feet}
-
-    def errors(q: np.ndarray) -> tuple[object, dict]:
-        fr = frames_at(problem, state, q)
-        return fr, {link: np.concatenate([targets[link][1] - fr.pos[link], so3_log(targets[link][0] @ fr.rot[link].T)])
-                    for _, link in feet}
-
-    now, err = errors(state.q)
-    for _ in range(iterations):
-        q = state.q.copy()
-        for _, link in feet:
-            joints = _LEG_JOINTS[robot.BODY_NAMES[link]]
-            jac = now.jac[link][:, 6 + joints]  # (6, 6): the leg's columns (world-aligned, link origin)
-            # damped least squares, at most 0.1 rad per joint (the SQP's trust region)
-            step = np.clip(np.linalg.solve(jac.T @ jac + 1e-4 * np.eye(6), jac.T @ err[link]), -0.1, 0.1)
-            q[7 + joints] = np.clip(q[7 + joints] + step, problem.kin.joint_lower[joints],
-                                    problem.kin.joint_upper[joints])
-        trial, trial_err = errors(q)
-        if sum(float(e @ e) for e in trial_err.values()) >= sum(float(e @ e) for e in err.values()):
-            break  # keep the better configuration
-        state.q, now, err = q, trial, trial_err
-
-
 def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> float:
     """Smallest self-collision row of the meshes at ``q`` (m; inf when no pair is close).
 
@@ -247,6 +205,14 @@ def _solve_sequence(problem: Problem, progress) -> Solution:
         if t > 0:
             warm_start(problem, state, t, held)
             replant_feet(problem, state, t)
+            if problem.solver.carry_swing_feet:  # the person's swing, not the SQP's budget, moves them
+                plain = state.q
+                carry_swing_feet(problem, state, t)
+                # as for the arm seed below: a foot carried into the other leg (a narrow gait's
+                # swing past the standing shin) stays there (Bandai: 3.8 cm deep, 81 failed QPs)
+                if not np.array_equal(plain, state.q) and _self_clearance(problem, state, state.q) < min(
+                        _self_clearance(problem, state, plain), -problem.solver.penetration_tolerance_m):
+                    state.q = plain
             # a local SQP cannot leave an arm branch pinned at joint limits (retarget.solver.arm_seed)
             seeded = seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps, free=arms_free)
             if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
