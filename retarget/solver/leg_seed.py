@@ -19,6 +19,10 @@ catches up in one frame as soon as a stance or roll-off flag changes the rows: t
 jumps of that clip. Started from the person's displacement, the SQP only corrects.
 ``SolverConfig.carry_swing_feet`` switches the carry on; it is off by default (its cost in
 time and contact fidelity: the same section).
+
+``replant_trial`` works inside a frame instead: it puts a standing foot's held points back on
+their targets in each trial iterate before the trust-region test (``SolverConfig.replant_trial``,
+off: docs/results/feasibility.md, *The carry, 2026-12-07 evening*).
 """
 
 from __future__ import annotations
@@ -102,3 +106,63 @@ def carry_swing_feet(problem: Problem, state: SolverState, t: int, iterations: i
         turn = rot_w[t, k] @ rot_w[t - 1, k].T
         targets[link] = (turn @ before.rot[link], before.pos[link] + pos_w[t, k] - pos_w[t - 1, k])
     move_legs(problem, state, targets, iterations)
+
+
+def replant_trial(problem: Problem, state: SolverState, stance, iterations: int = 2,
+                  tolerance_m: float = 1e-4) -> None:
+    """Put the held sole points of a standing foot (every coordinate held) back on their targets
+    (``StanceTargets``) in a trial iterate, before the trust-region test judges the step: damped
+    Gauss–Newton steps per foot on its leg's six joints (point Jacobians), at most 0.1 rad per
+    joint, within the joint limits, each kept only if it lowers the foot's summed squared miss;
+    a foot within ``tolerance_m`` everywhere is left alone, and so is a foot held only in height
+    (sweeping), whose free x, y the correction would move unpriced.
+
+    The QP's step is first order: a full step that pitches a held foot drops its toe by the
+    second-order term, which the stiff stance rows (1e6 per m²) price at many times the
+    predicted gain, and the step is refused. Re-planting before the merit is measured is a
+    second-order correction of that refusal. ``SolverConfig.replant_trial``; off (measured in
+    docs/results/feasibility.md, *The carry, 2026-12-07 evening*: it moves the standing leg
+    unchecked against the swinging one)."""
+    if len(stance.link) == 0:
+        return
+
+    def misses(fr):
+        out = {}
+        for link in np.unique(stance.link):
+            sel = stance.link == link
+            x = stance.points[sel] @ fr.rot[link].T + fr.pos[link]
+            target = stance.target_w[sel]
+            out[int(link)] = (x, np.where(np.isfinite(target), target - x, 0.0), np.isfinite(target))
+        return out
+
+    fr = frames_at(problem, state, state.q)
+    now = misses(fr)
+    for _ in range(iterations):
+        q = state.q.copy()
+        moving = [link for link, (_, miss, held) in now.items()
+                  if held.all() and np.abs(miss).max() >= tolerance_m]  # standing feet only
+        if not moving:
+            return
+        for link in moving:
+            x, miss, held = now[link]
+            joints = LEG_JOINTS[robot.BODY_NAMES[link]]
+            jac = fr.jac[link][:, 6 + joints]  # (6, 6) world-aligned at the link origin
+            # a point's velocity v + ω × r: J_v − r × J_ω
+            point_jac = jac[None, :3, :] - np.cross((x - fr.pos[link])[:, :, None], jac[None, 3:, :],
+                                                    axisa=1, axisb=1, axisc=1)
+            a, r = point_jac[held], miss[held]
+            step = np.clip(np.linalg.solve(a.T @ a + 1e-4 * np.eye(6), a.T @ r), -0.1, 0.1)
+            q[7 + joints] = np.clip(q[7 + joints] + step, problem.kin.joint_lower[joints],
+                                    problem.kin.joint_upper[joints])
+        trial_fr = frames_at(problem, state, q)
+        trial = misses(trial_fr)
+        better = [link for link in moving if float(np.sum(trial[link][1] ** 2)) < float(np.sum(now[link][1] ** 2))]
+        if len(better) < len(moving):  # keep only the feet that came closer
+            for link in set(moving) - set(better):
+                joints = LEG_JOINTS[robot.BODY_NAMES[link]]
+                q[7 + joints] = state.q[7 + joints]
+            if not better:
+                return
+            trial_fr = frames_at(problem, state, q)
+            trial = misses(trial_fr)
+        state.q, fr, now = q, trial_fr, trial

@@ -154,6 +154,11 @@ class SolverConfig:
     #: carry), the box's object J falls 89.6 -> 89.3 % and the jog's ground J 99.6 -> 98.9 %
     #: (docs/results/feasibility.md, *Why a swing foot jumps*).
     carry_swing_feet: bool = False
+    #: Ours: before the trust-region test judges a trial step, the held sole points are put back
+    #: on their targets on their legs' joints (``retarget.solver.leg_seed.replant_trial``), a
+    #: second-order correction of the refusals that a pitched held foot's toe causes. Off: on Bandai
+    #: walks it moved the standing shin into the swinging foot (docs/results/feasibility.md).
+    replant_trial: bool = False
     #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
     previous_frame_weight: float = 1.0
     #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).

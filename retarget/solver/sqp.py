@@ -35,7 +35,7 @@ from retarget.geometry.kinematics import NUM_LINKS
 from retarget.solver.arm_seed import arm_links, seed_arms
 from retarget.solver.contact_annotation import frame_contacts
 from retarget.solver.iterate import FrameStats, SectionTimer, SolverState, frames_at, new_state, retract
-from retarget.solver.leg_seed import carry_swing_feet, replant_feet
+from retarget.solver.leg_seed import carry_swing_feet, replant_feet, replant_trial
 from retarget.solver.problem import Problem
 from retarget.solver.qp import QPModel, assemble_model, body_jacobians, model_at, qp_step
 from retarget.solver.rows import linearise
@@ -83,6 +83,8 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
             break
         saved = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
         retract(problem, state, delta)
+        if cfg.replant_trial:  # the step's second-order drop of a held toe is not the step's fault
+            replant_trial(problem, state, targets.stance)
         trial = linearise(problem, state, targets, stats.timings, counts=counts, contact=contact)
         trial_model = model_at(problem, state, trial, stats.timings, assemble=False)
         gain = model.merit - trial_model.merit

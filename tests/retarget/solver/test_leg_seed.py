@@ -49,3 +49,39 @@ def test_swing_feet_carried_by_the_person_do_not_jump(walk):
     assert without.max() > 0.10  # the lag released in one frame (the cause, kept measurable)
     carried = _feet_off_their_line(walk, carry=True)
     assert carried.max() < 0.03, f"peak {100 * carried.max():.1f} cm at frame {np.argmax(carried.max(axis=1)) + 1}"
+
+
+def test_a_trial_step_that_pitches_a_held_foot_gets_its_held_points_back(walk):
+    """``replant_trial``: a standing foot pitched about its ankle (the toe dropped 1-2 cm, the
+    QP's second-order error) is put back on its held points, the other leg untouched; a foot
+    held only in height (sweeping: x, y free) is left as the step put it."""
+    from retarget.solver.iterate import frames_at, new_state
+    from retarget.solver.leg_seed import LEG_JOINTS, replant_trial
+    from retarget.solver.stance import StanceTargets
+
+    problem = problem_from_config(walk, RetargetConfig())
+    state = new_state(problem)
+    link = int(problem.feet[0])
+    sole = problem.soles[0]
+    held = sole @ frames_at(problem, state, state.q).rot[link].T + frames_at(problem, state, state.q).pos[link]
+    for free_xy in (False, True):
+        target = held.copy()
+        if free_xy:
+            target[:, :2] = np.nan  # a sweeping foot: only its height held
+        stance = StanceTargets(np.full(len(sole), link), sole, target, np.ones(len(sole)))
+        state.q = problem.q_init.copy()
+        joints = LEG_JOINTS[robot.BODY_NAMES[link]]
+        state.q[7 + joints[4]] += 0.15  # ankle pitch: the toe drops
+        other = np.setdiff1d(np.arange(problem.kin.nq), 7 + joints)
+        pitched = state.q.copy()
+        fr = frames_at(problem, state, state.q)
+        miss = np.nan_to_num(sole @ fr.rot[link].T + fr.pos[link] - target)
+        assert np.abs(miss).max() > 0.01
+        replant_trial(problem, state, stance)
+        if free_xy:
+            assert np.array_equal(state.q, pitched)
+            continue
+        fr = frames_at(problem, state, state.q)
+        miss = sole @ fr.rot[link].T + fr.pos[link] - target
+        assert np.abs(miss).max() < 0.002, f"{1000 * np.abs(miss).max():.1f} mm"
+        assert np.array_equal(state.q[other], pitched[other])
