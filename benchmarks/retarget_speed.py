@@ -64,6 +64,11 @@ def _clips():
     carry = (("OMOMO sub3_largebox_003 (box free)",
               lambda: load_demonstration(omomo, SHARED / "objects" / "largebox.obj")) if omomo.is_file()
              else ("synthetic box carry (seed 0)", lambda: synthetic.generate("box_carry", 0)))
+    if not (amass.is_file() and omomo.is_file()):
+        # say so: the synthetic clips are far cheaper per frame than the real ones, and a checkout
+        # that is not next to ../shared (a git worktree) would otherwise time them without a word
+        print(f"note: {SHARED} lacks the real clips (set OTR_SHARED_DATA); timing the synthetic ones instead",
+              file=sys.stderr, flush=True)
     return [("locomotion",) + walk, ("carrying",) + carry]
 
 
