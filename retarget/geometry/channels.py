@@ -62,6 +62,10 @@ class GeometryConfig:
     human_density_per_m2: float = 2000.0  # probe densities (Sec. III-A)
     robot_density_per_m2: float = 2000.0
     object_density_per_m2: float = 1000.0
+    #: Ours: the human and robot probes as an even cover (``sample_surface``'s ``even``: farthest-point
+    #: thinning of a 8× denser random sample) rather than i.i.d. area-uniform draws; the probe seed
+    #: then only picks which of several near-equal covers is used (docs/results/box.md, "No lottery").
+    even_probes: bool = False
     # Our choices for the geodesic table (the paper only says "precomputed on the channel cloud"):
     geodesic_min_samples: int = 200  # small links still get a usable all-pairs table
     geodesic_max_samples: int = 2000  # K heat solves and a K×K table: ~3 s and 16 MB at K = 2000
@@ -86,11 +90,38 @@ class SurfaceSamples:
         return len(self.points)
 
 
-def sample_surface(mesh: TriMesh, density_per_m2: float, seed: int = 0) -> SurfaceSamples:
-    """Area-uniform random samples, round(area · density) of them (at least 1); same seed, same cloud."""
+#: ``sample_surface(even=True)``: candidates drawn per kept sample before the farthest-point thinning.
+EVEN_OVERSAMPLING = 8
+
+
+def sample_surface(mesh: TriMesh, density_per_m2: float, seed: int = 0, even: bool = False) -> SurfaceSamples:
+    """Area-uniform random samples, round(area · density) of them (at least 1); same seed, same cloud.
+
+    ``even``: an even cover instead: ``EVEN_OVERSAMPLING`` × as many area-uniform draws, thinned by
+    farthest-point sampling (from the first draw) to the count. Two seeds give two covers of the
+    same spacing (blue noise) instead of two i.i.d. clouds with their clumps and holes; the
+    samples come in farthest-point order, so any prefix is itself an even, sparser cover."""
     if not density_per_m2 > 0:
         raise ValueError(f"{mesh.name}: density must be > 0 points/m², got {density_per_m2}")
-    return _sample_count(mesh, max(1, round(mesh.area_m2 * density_per_m2)), seed)
+    count = max(1, round(mesh.area_m2 * density_per_m2))
+    if not even:
+        return _sample_count(mesh, count, seed)
+    dense = _sample_count(mesh, EVEN_OVERSAMPLING * count, seed)
+    keep = farthest_point_order(dense.points, count)
+    return SurfaceSamples(dense.points[keep], dense.normals[keep], dense.face[keep])
+
+
+def farthest_point_order(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of ``count`` of ``points`` (N, 3): farthest-point sampling from the first point
+    (each next point the one farthest from those chosen; Euclidean)."""
+    count = min(count, len(points))
+    chosen = np.empty(count, np.int64)
+    chosen[0] = 0
+    dist = np.sum((points - points[0]) ** 2, axis=1)
+    for k in range(1, count):
+        chosen[k] = i = int(np.argmax(dist))
+        np.minimum(dist, np.sum((points - points[i]) ** 2, axis=1), out=dist)
+    return chosen
 
 
 def _sample_count(mesh: TriMesh, count: int, seed: int) -> SurfaceSamples:

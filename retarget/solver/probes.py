@@ -223,13 +223,14 @@ def _stack(names: tuple[str, ...], clouds: list[np.ndarray]) -> ProbeSet:
 
 @lru_cache(maxsize=4)
 def robot_probes(density_per_m2: float = GeometryConfig.robot_density_per_m2, seed: int = 0,
-                 max_per_link: int | None = None) -> ProbeSet:
+                 max_per_link: int | None = None, even: bool = False) -> ProbeSet:
     """Area-uniform samples of every G1 link's visual mesh (link frames), links in BODY_NAMES order.
 
     Links without a visual mesh carry no probe. The sampling is deterministic (seed per link).
     ``max_per_link`` keeps only the first samples of a larger link: the samples are i.i.d.
     uniform, so that is the same surface at a lower density (the torso's 0.56 m² would
     otherwise carry a quarter of all probes; E_int normalises each link by its active count).
+    ``even``: each link's cloud an even cover (``sample_surface``; its prefixes are even covers too).
     """
     meshes = visual_meshes()
     clouds = []
@@ -238,7 +239,7 @@ def robot_probes(density_per_m2: float = GeometryConfig.robot_density_per_m2, se
             clouds.append(np.zeros((0, 3)))
             continue
         m = meshes[name]
-        points = sample_surface(as_trimesh(m.vertices, m.faces, name), density_per_m2, seed + k).points
+        points = sample_surface(as_trimesh(m.vertices, m.faces, name), density_per_m2, seed + k, even).points
         clouds.append(points if max_per_link is None else points[:max_per_link])
     return _stack(robot.BODY_NAMES, clouds)
 
@@ -376,10 +377,11 @@ def robot_self_points() -> tuple[ProbeSet, PointClusters]:
 
 
 def human_probes(surface: HumanSurface, density_per_m2: float = GeometryConfig.human_density_per_m2,
-                 seed: int = 0, scale: float = 1.0) -> ProbeSet:
-    """Area-uniform samples of every human part's surface (part frames, × ``scale``)."""
+                 seed: int = 0, scale: float = 1.0, even: bool = False) -> ProbeSet:
+    """Area-uniform samples of every human part's surface (part frames, × ``scale``); ``even``: an
+    even cover of each part (``sample_surface``)."""
     clouds = []
     for k, (name, v, f) in enumerate(zip(surface.part_names, surface.vertices, surface.faces)):
         mesh = as_trimesh(np.asarray(v) * scale, f, f"human part {name}")
-        clouds.append(sample_surface(mesh, density_per_m2, seed + k).points)
+        clouds.append(sample_surface(mesh, density_per_m2, seed + k, even).points)
     return _stack(tuple(surface.part_names), clouds)

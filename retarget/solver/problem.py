@@ -393,8 +393,8 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
     T = demo.num_frames
     part_pos = demo.part_pos_w * scale
     part_rot = quat_to_matrix(demo.part_quat_w)
-    human = human_probes(demo.surface, geometry.human_density_per_m2, seed, scale)
-    robot_set = robot_probes(geometry.robot_density_per_m2, seed, max_probes_per_link)
+    human = human_probes(demo.surface, geometry.human_density_per_m2, seed, scale, geometry.even_probes)
+    robot_set = robot_probes(geometry.robot_density_per_m2, seed, max_probes_per_link, geometry.even_probes)
     src = correspondences(robot_set, human, demo, scale, cache_dir, links_together)
     demo_points = ProbeSet(human.body_names, human.points[src], human.body[src])
 

@@ -345,3 +345,23 @@ def test_config_defaults_are_the_papers_numbers():
     cfg = GeometryConfig()
     assert (cfg.grid_resolution_m, cfg.band_m) == (0.01, 0.15)
     assert (cfg.human_density_per_m2, cfg.robot_density_per_m2, cfg.object_density_per_m2) == (2000, 2000, 1000)
+
+
+def test_even_sampling_is_a_cover_without_clumps(box_mesh):
+    """``even``: as many points, on the surface, deterministic by seed, and no two closer than a
+    good share of the cover's spacing (i.i.d. draws put some pairs nearly on top of each other)."""
+    from scipy.spatial import cKDTree
+
+    a = sample_surface(box_mesh, 2000.0, seed=3, even=True)
+    b = sample_surface(box_mesh, 2000.0, seed=3, even=True)
+    c = sample_surface(box_mesh, 2000.0, seed=4, even=True)
+    r = sample_surface(box_mesh, 2000.0, seed=3)
+    assert len(a) == len(r) == 1040
+    np.testing.assert_array_equal(a.points, b.points)
+    assert not np.allclose(a.points, c.points)
+    d, _, _ = signed_distance(box_mesh, a.points)
+    assert np.abs(d).max() < 1e-12
+    spacing = np.sqrt(box_mesh.area_m2 / len(a))  # ~2.2 cm
+    nearest = lambda p: cKDTree(p).query(p, k=2)[0][:, 1]  # noqa: E731
+    assert nearest(a.points).min() > 0.5 * spacing
+    assert nearest(r.points).min() < 0.1 * spacing

@@ -160,3 +160,26 @@ def test_a_grip_the_g1_can_make_already_is_kept():
     out, report = grasp_boxes(ref, GraspCfg())
     assert [h["kept"] for h in report.holds] == [True] and "kept" in report.line()
     assert out is ref
+
+
+def test_a_finger_weight_turns_the_fingers_down_the_faces():
+    """``finger_weight``: the hands' finger axes (link x) go to ``finger_b`` (here straight down),
+    whatever the per-frame solution's turn of the hand about the face normal; off, they keep it."""
+    ref = _held(np.array([0.40, 0.0, 1.014 + HALF[2] + 0.01]))
+    held = slice(12, FRAMES - 1)
+
+    def fingers(out: Reference) -> np.ndarray:
+        mdl = grasp._model()
+        data = mdl.pin_model.createData()
+        q = robot.qpos_mujoco_to_pinocchio(out.qpos())
+        axes = []
+        for t in range(held.start, held.stop):
+            pin.framesForwardKinematics(mdl.pin_model, data, q[t])
+            axes.append([data.oMf[f].rotation[:, 0] for f in mdl.palm_frames])
+        return np.array(axes)
+
+    off, _ = grasp_boxes(ref, GraspCfg())
+    on, _ = grasp_boxes(ref, GraspCfg(finger_weight=100.0))
+    down_off, down_on = -fingers(off)[..., 2], -fingers(on)[..., 2]
+    assert down_on.min() > 0.9  # within ~25° of straight down on every held frame
+    assert down_on.mean() > down_off.mean() + 0.1
