@@ -197,9 +197,9 @@ class SimRobot:
         body = m.body(obj.body).id
         m.body_inertia[body] *= props.inertia_scale * props.mass_kg / m.body_mass[body]
         m.body_mass[body] = props.mass_kg
-        for g in range(m.ngeom):
-            if m.geom_bodyid[g] == body and (m.geom_contype[g] or m.geom_conaffinity[g]):
-                m.geom_friction[g, 0] = props.friction
+        from envs.mdp.randomization import collision_geoms
+
+        m.geom_friction[collision_geoms(m, body), 0] = props.friction
         self.object_properties[name] = props
 
     def object_contacts(self) -> dict[str, list[str]]:

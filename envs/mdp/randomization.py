@@ -79,7 +79,7 @@ def randomize_objects(backend: PhysicsBackend, bodies: Sequence[str], mass_kg: S
     out = {}
     for body, mass in zip(bodies, mass_kg, strict=True):
         bid = backend.body_ids([body])[0]
-        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == bid and (m.geom_contype[g] or m.geom_conaffinity[g])]
+        geoms = collision_geoms(m, bid)
         draws = draw_object(cfg, mass, n, generator, backend.device)
         friction, added, scale = draws.unbind(-1)
         backend.set_geom_friction(geoms, friction[:, None].expand(-1, len(geoms)))
@@ -87,6 +87,13 @@ def randomize_objects(backend: PhysicsBackend, bodies: Sequence[str], mass_kg: S
         backend.set_body_mass(bid, added, scale * added / mass)
         out[body] = draws
     return out
+
+
+def collision_geoms(model, body_id: int) -> list[int]:
+    """The geoms of body ``body_id`` that collide (contype or conaffinity set): those whose
+    friction the randomisation draws (``otr sim-robot --object-draw`` sets the same ones)."""
+    return [g for g in range(model.ngeom)
+            if model.geom_bodyid[g] == body_id and (model.geom_contype[g] or model.geom_conaffinity[g])]
 
 
 def draw_object(cfg: ObjectRandomizationCfg, mass_kg: float, n: int, generator: torch.Generator,

@@ -40,6 +40,15 @@ LEG_JOINTS = {f"{side}_ankle_roll_link": robot.joint_indices(
     for side in ("left", "right")}
 
 
+def _step_leg(problem: Problem, q: np.ndarray, link: int, jac: np.ndarray, residual: np.ndarray) -> None:
+    """One damped least-squares step of ``link``'s six leg joints in ``q`` (in place) towards
+    ``residual`` through ``jac`` (rows × 6 leg columns): at most 0.1 rad per joint (the SQP's
+    trust region), within the joint limits."""
+    joints = LEG_JOINTS[robot.BODY_NAMES[link]]
+    step = np.clip(np.linalg.solve(jac.T @ jac + 1e-4 * np.eye(6), jac.T @ residual), -0.1, 0.1)
+    q[7 + joints] = np.clip(q[7 + joints] + step, problem.kin.joint_lower[joints], problem.kin.joint_upper[joints])
+
+
 def move_legs(problem: Problem, state: SolverState, targets: dict[int, tuple[np.ndarray, np.ndarray]],
               iterations: int = 2) -> None:
     """Bring each foot link of ``targets`` (link → (world rotation (3, 3), world position (3,) m))
@@ -58,12 +67,8 @@ def move_legs(problem: Problem, state: SolverState, targets: dict[int, tuple[np.
     for _ in range(iterations):
         q = state.q.copy()
         for link in targets:
-            joints = LEG_JOINTS[robot.BODY_NAMES[link]]
-            jac = now.jac[link][:, 6 + joints]  # (6, 6): the leg's columns (world-aligned, link origin)
-            # damped least squares, at most 0.1 rad per joint (the SQP's trust region)
-            step = np.clip(np.linalg.solve(jac.T @ jac + 1e-4 * np.eye(6), jac.T @ err[link]), -0.1, 0.1)
-            q[7 + joints] = np.clip(q[7 + joints] + step, problem.kin.joint_lower[joints],
-                                    problem.kin.joint_upper[joints])
+            # (6, 6): the leg's columns (world-aligned, link origin)
+            _step_leg(problem, q, link, now.jac[link][:, 6 + LEG_JOINTS[robot.BODY_NAMES[link]]], err[link])
         trial, trial_err = errors(q)
         if sum(float(e @ e) for e in trial_err.values()) >= sum(float(e @ e) for e in err.values()):
             break  # keep the better configuration
@@ -150,10 +155,7 @@ def replant_trial(problem: Problem, state: SolverState, stance, iterations: int 
             # a point's velocity v + ω × r: J_v − r × J_ω
             point_jac = jac[None, :3, :] - np.cross((x - fr.pos[link])[:, :, None], jac[None, 3:, :],
                                                     axisa=1, axisb=1, axisc=1)
-            a, r = point_jac[held], miss[held]
-            step = np.clip(np.linalg.solve(a.T @ a + 1e-4 * np.eye(6), a.T @ r), -0.1, 0.1)
-            q[7 + joints] = np.clip(q[7 + joints] + step, problem.kin.joint_lower[joints],
-                                    problem.kin.joint_upper[joints])
+            _step_leg(problem, q, link, point_jac[held], miss[held])
         trial_fr = frames_at(problem, state, q)
         trial = misses(trial_fr)
         better = [link for link in moving if float(np.sum(trial[link][1] ** 2)) < float(np.sum(now[link][1] ** 2))]

@@ -168,6 +168,14 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
             state.obj_rot[i] = tr.rot_w[t] @ tr.rot_w[t - 1].T @ state.obj_rot[i]
 
 
+def _seed_if_clear(problem: Problem, state: SolverState, seeded: np.ndarray) -> None:
+    """Take the warm-start move ``seeded`` unless it brings the robot's meshes further into each
+    other than they are (beyond the penetration tolerance)."""
+    if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
+            _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m):
+        state.q = seeded
+
+
 def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> float:
     """Smallest self-collision row of the meshes at ``q`` (m; inf when no pair is close).
 
@@ -210,16 +218,13 @@ def _solve_sequence(problem: Problem, progress) -> Solution:
             if problem.solver.carry_swing_feet:  # the person's swing, not the SQP's budget, moves them
                 plain = state.q
                 carry_swing_feet(problem, state, t)
-                # as for the arm seed below: a foot carried into the other leg (a narrow gait's
-                # swing past the standing shin) stays there (Bandai: 3.8 cm deep, 81 failed QPs)
-                if not np.array_equal(plain, state.q) and _self_clearance(problem, state, state.q) < min(
-                        _self_clearance(problem, state, plain), -problem.solver.penetration_tolerance_m):
-                    state.q = plain
+                # a foot carried into the other leg (a narrow gait's swing past the standing
+                # shin) stays there (Bandai: 3.8 cm deep, 81 failed QPs)
+                carried, state.q = state.q, plain
+                _seed_if_clear(problem, state, carried)
             # a local SQP cannot leave an arm branch pinned at joint limits (retarget.solver.arm_seed)
-            seeded = seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps, free=arms_free)
-            if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
-                    _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m):
-                state.q = seeded
+            _seed_if_clear(problem, state, seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps,
+                                                     free=arms_free))
         stats.append(solve_frame(problem, state, t))
         fc = frame_contacts(problem, state, t)
         held = np.array([fc.distance[:, o.channel].min() < problem.solver.hold_distance_m for o in problem.objects],
