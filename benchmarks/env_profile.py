@@ -157,6 +157,9 @@ def main(argv=None) -> dict:
     quiet_warp()
     reference = args.reference or walking_reference(WalkSpec(steps=20))
     cfg = load_env_config(args.task)
+    # Per-phase attribution needs the MDP's kernels launched from Python: profile the eager step
+    # (the default step replays one CUDA graph, envs/step_graph.py, a single launch to the profiler).
+    cfg.sim.cuda_graph = False
     if args.task == BOX_TASK:
         from envs.box import make_box_task as make_task
     else:

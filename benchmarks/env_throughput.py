@@ -7,15 +7,19 @@ For every num_envs, one vector env (training configuration: randomisation and no
 random actions; three rates are measured on it, in env-steps/s (one env-step = 4 physics
 steps at 200 Hz):
 
-- ``env``: the full ``step`` (actions → PD → physics graph → rewards/terminations → resets → obs);
+- ``env``: the full ``step`` (actions → PD → physics → rewards/terminations → resets → obs), on
+  CUDA one replayed graph (``envs/step_graph.py``); ``env eager``: the same step with the MDP's
+  torch work launched from Python between the physics graphs (``sim.cuda_graph: false``);
 - ``backend``: the env's physics graph alone (physics + contact-force maxima + kinematics refresh);
 - ``raw``: a graph of nothing but ``decimation`` × ``mujoco_warp.step`` on the same Model/Data
   (with the env's contact sensors); ``raw_bare``: the same on the G1 without contact sensors,
   standing keyframe, no resets (the setting of docs/environment.md §1).
 
-``env/raw`` is the share of the raw physics ceiling the env keeps. Before timing, two checks run
+``env/raw`` is the share of the raw physics ceiling the env keeps. Before timing, three checks run
 on CUDA: no torch host synchronisation inside ``step`` (``torch.cuda.set_sync_debug_mode``),
-and torch reads of the state views see the graph's writes without an explicit synchronise.
+torch reads of the state views see the graph's writes without an explicit synchronise, and the
+graphed step gives the eager step's results (two evaluation envs of 512 worlds, same random
+actions, 60 steps with falls and restarts: the largest observation difference).
 
 Usage::
 
@@ -91,6 +95,38 @@ def _checks(task, actions) -> dict:
     return out
 
 
+def _graph_matches_eager(task_id: str, reference, device: str, num_envs: int = 512, steps: int = 60) -> dict:
+    """CUDA only: the same evaluation env (deterministic: no randomisation, noise or random
+    starts) stepped as a graph and eagerly with the same actions; the largest observation and
+    reward differences and the envs that ended (so the restart path ran)."""
+    from envs.config import BOX_TASK, load_env_config
+
+    if task_id == BOX_TASK:
+        from envs.box import make_box_task as make_task
+    else:
+        from envs.tracking import make_task
+    tasks = []
+    for graph in (True, False):
+        cfg = load_env_config(task_id)
+        cfg.sim.cuda_graph = graph
+        tasks.append(make_task(reference, num_envs, "warp", device, cfg=cfg, evaluation=True, seed=0))
+    graphed, eager = tasks
+    if graphed.step_graph is None:
+        return {"graph_check": "no graph on this device"}
+    gen = torch.Generator(device=graphed.device).manual_seed(1)
+    obs_diff = reward_diff = 0.0
+    ended = 0
+    for _ in range(steps):
+        a = 2.0 * torch.randn(num_envs, 29, device=graphed.device, generator=gen)
+        og, rg, tg, ug, _ = graphed.step(a)
+        oe, re, te, ue, _ = eager.step(a)
+        obs_diff = max(obs_diff, max(float((og[k] - oe[k]).abs().max()) for k in og))
+        reward_diff = max(reward_diff, float((rg - re).abs().max()))
+        ended += int((te | ue).sum())
+    return {"graph_obs_max_diff": obs_diff, "graph_reward_max_diff": reward_diff, "graph_check_ended": ended,
+            "graph_replays": graphed.step_graph.calls - graphed.step_graph.warmup}
+
+
 def _capture_steps(model, data, decimation: int, device):
     """A graph of ``decimation`` bare ``mujoco_warp.step`` calls."""
     import mujoco_warp as mjw
@@ -149,7 +185,10 @@ def bench_vector(task_id: str, reference, num_envs: int, device: str, steps: int
     row = {"task": task_id, "num_envs": num_envs, "build_s": round(build_s, 2), "first_step_s": round(first_step_s, 2)}
     if dev.type == "cuda":
         row.update(_checks(task, actions))
+        row.update(_graph_matches_eager(task_id, reference, device))
     row["env_steps_per_s"], row["env_ms_per_step"] = _rate(lambda i: task.step(actions[i % 16]), steps, num_envs, dev)
+    if task.step_graph is not None:  # the same env, its step eager (the graph's state is pinned back after)
+        row["env_eager_steps_per_s"], _ = _rate(lambda i: task._step(actions[i % 16]), steps, num_envs, dev)
     if free_before is not None:
         _sync(dev)
         row["device_mem_gib"] = (free_before - torch.cuda.mem_get_info()[0]) / 2**30
@@ -207,19 +246,22 @@ def bench_cpu_single(task_id: str, reference, steps: int, seed: int) -> dict:
 
 
 def _table(rows: list[dict]) -> str:
-    head = ("task", "num_envs", "env steps/s", "backend steps/s", "raw steps/s", "env/raw", "raw bare steps/s",
-            "env ms/step", "mem GiB", "contacts/world")
+    head = ("task", "num_envs", "env steps/s", "env eager steps/s", "backend steps/s", "raw steps/s", "env/raw",
+            "raw bare steps/s", "env/raw bare", "env ms/step", "mem GiB", "contacts/world", "graph = eager (obs diff)")
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
         if "error" in r:
             lines.append(f"| {r['task']} | {r['num_envs']} | error: {r['error']} |")
             continue
         mem = f"{r['device_mem_gib']:.2f}" if "device_mem_gib" in r else "-"
-        lines.append(f"| {r['task']} | {r['num_envs']} | {r['env_steps_per_s']:,.0f} | "
+        eager = f"{r['env_eager_steps_per_s']:,.0f}" if "env_eager_steps_per_s" in r else "-"
+        check = f"{r['graph_obs_max_diff']:.1e}" if "graph_obs_max_diff" in r else "-"
+        lines.append(f"| {r['task']} | {r['num_envs']} | {r['env_steps_per_s']:,.0f} | {eager} | "
                      f"{r['backend_steps_per_s']:,.0f} | "
                      f"{r['raw_steps_per_s']:,.0f} | {r['env_over_raw']:.0%} | {r['raw_bare_steps_per_s']:,.0f} | "
+                     f"{r['env_steps_per_s'] / r['raw_bare_steps_per_s']:.0%} | "
                      f"{r['env_ms_per_step']:.2f} | {mem} | "
-                     f"{r['contacts_per_world']:.1f} |")
+                     f"{r['contacts_per_world']:.1f} | {check} |")
     return "\n".join(lines)
 
 

@@ -112,7 +112,7 @@ for j in $JOBS; do
   mkdir -p /tmp/res/$j
   cp /tmp/b5.$j.*.log /tmp/res/$j/ 2>/dev/null
   run=$(cat runs/b5/$j/LATEST_RUN 2>/dev/null)
-  for f in summary.md eval.json eval_randomized.json training_curves.png report.log; do
+  for f in summary.md eval.json eval_randomized.json training_curves.png report.log policy.onnx; do
     cp out/b5/$j/$f /tmp/res/$j/ 2>/dev/null
   done
   if [ -n "$run" ]; then

@@ -35,6 +35,7 @@ from envs.mdp.commands import MotionCommand
 from envs.mdp.motion import MotionLibrary
 from envs.mdp.randomization import DomainRandomizer
 from envs.mdp.state import TrackingState, aligned_targets, root_velocities_b
+from envs.step_graph import StepGraph
 from envs.terrain import SceneTerrain, flat
 from otr_gym import robot
 
@@ -108,6 +109,9 @@ class TrackingTask:
 
         self.state: TrackingState
         self.tracking_state: TrackingState
+        #: the step as one CUDA graph, captured on its first calls (envs.step_graph)
+        self.step_graph = (StepGraph(self, self._step) if cfg.sim.cuda_graph and self.device.type == "cuda"
+                           and backend.joins_cuda_graphs else None)
         self.reset()
         self.obs_layout = {g: [(name, int(fn(self.state).shape[-1])) for name, fn, _ in terms]
                            for g, terms in self._obs.items()}
@@ -128,7 +132,13 @@ class TrackingTask:
 
     def step(self, actions: torch.Tensor):
         """Advance all envs by one policy step. Returns (obs, reward (N,), terminated (N,) bool,
-        truncated (N,) bool, extras) — see ``TrackEnv``/``TrackVecEnv`` for the extras."""
+        truncated (N,) bool, extras) — see ``TrackEnv``/``TrackVecEnv`` for the extras. With
+        ``step_graph`` the step is a CUDA graph replay; the results are the same."""
+        if self.step_graph is not None:
+            return self.step_graph(actions)
+        return self._step(actions)
+
+    def _step(self, actions: torch.Tensor):
         actions = torch.as_tensor(actions, dtype=torch.float32, device=self.device)
         clip = self.cfg.action.clip
         self.last_action = self.action

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from contextlib import AbstractContextManager
 
 import mujoco
 import torch
@@ -128,6 +129,14 @@ class PhysicsBackend(ABC):
         index tensor (K,) with (K, nq)/(K, nv) rows. Solver warm-starts and the contact-force
         maxima of those worlds are cleared.
         """
+
+    #: whether ``joined_capture`` works: the backend's work can join a CUDA graph torch captures
+    joins_cuda_graphs: bool = False
+
+    def joined_capture(self) -> AbstractContextManager:
+        """Inside ``torch.cuda.graph``: a context in which ``step`` and ``reset`` launch their work
+        into torch's capture (``envs.step_graph``). Only where ``joins_cuda_graphs``."""
+        raise NotImplementedError(f"{type(self).__name__} cannot join a CUDA graph capture")
 
     @abstractmethod
     def write_qvel(self, qvel: torch.Tensor) -> None:

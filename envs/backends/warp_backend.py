@@ -21,7 +21,8 @@ the per-world constraint arrays; the MDP's torch tensors add a few KB per world.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import mujoco
 import mujoco_warp as mjw
@@ -101,6 +102,8 @@ class WarpBackend(PhysicsBackend):
         self._body_mass_t, self._body_inertia_t = wp.to_torch(m.body_mass), wp.to_torch(m.body_inertia)
         self._body_inertia0 = self._body_inertia_t[0].clone()
         self._step_graph = self._refresh_graph = None
+        self._joined = False  # inside a torch capture (joined_capture): launch eagerly into it
+        self.joins_cuda_graphs = wp_device.is_cuda
         if graph_capture:
             with wp.ScopedDevice(wp_device):
                 with wp.ScopedCapture(device=wp_device) as capture:
@@ -154,7 +157,7 @@ class WarpBackend(PhysicsBackend):
     # ------------------------------------------------------------ actions
     def step(self, ctrl: torch.Tensor) -> None:
         self._ctrl_t.copy_(ctrl)
-        if self._step_graph is not None:
+        if self._step_graph is not None and not self._joined:
             wp.capture_launch(self._step_graph)
         else:
             with wp.ScopedDevice(self._wp_device):
@@ -167,7 +170,7 @@ class WarpBackend(PhysicsBackend):
         self._qvel_t.copy_(torch.where(rows, self._full_rows(env_ids, qvel, self._qvel_t), self._qvel_t))
         self._warmstart_t.masked_fill_(rows, 0.0)
         self._contact_t.masked_fill_(rows, 0.0)
-        if self._refresh_graph is not None:
+        if self._refresh_graph is not None and not self._joined:
             wp.capture_launch(self._refresh_graph)
         else:
             with wp.ScopedDevice(self._wp_device):
@@ -175,6 +178,23 @@ class WarpBackend(PhysicsBackend):
 
     def write_qvel(self, qvel: torch.Tensor) -> None:
         self._qvel_t.copy_(qvel)
+
+    @contextmanager
+    def joined_capture(self) -> Iterator[None]:
+        """Warp on the stream torch is capturing, the capture registered with warp as external
+        (warp's documented way into a torch graph); the physics launched kernel by kernel, since a
+        captured graph cannot be launched into another capture."""
+        if not self.joins_cuda_graphs:
+            raise NotImplementedError(f"warp device {self._wp_device} cannot join a CUDA graph capture")
+        stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
+        with wp.ScopedStream(stream):
+            wp.capture_begin(stream=stream, external=True, force_module_load=False)
+            self._joined = True
+            try:
+                yield
+            finally:
+                self._joined = False
+                wp.capture_end(stream=stream)
 
     def set_geom_friction(self, geom_ids: Sequence[int], friction: torch.Tensor) -> None:
         self._require_per_world(self._friction_t, "geom_friction")

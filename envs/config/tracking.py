@@ -29,6 +29,10 @@ class SimCfg:
     # (14 foot capsules × 2 against the plane), so nconmax leaves room for knees/hands.
     nconmax: int = 40
     njmax: int = 256
+    #: The whole env step as one replayed CUDA graph (warp backend on a CUDA device;
+    #: ``envs.step_graph``): the step was host-bound, launching the MDP's ~700 small kernels one
+    #: by one. False: physics graph-captured, the MDP's torch work launched eagerly.
+    cuda_graph: bool = True
     #: Bodies with a contact-force sensor: every G1 body that has collision geometry.
     contact_bodies: tuple[str, ...] = (
         "pelvis", "left_hip_roll_link", "left_hip_yaw_link", "left_knee_link", "left_ankle_roll_link",
