@@ -123,6 +123,8 @@ def _graph_matches_eager(task_id: str, reference, device: str, num_envs: int = 5
         obs_diff = max(obs_diff, max(float((og[k] - oe[k]).abs().max()) for k in og))
         reward_diff = max(reward_diff, float((rg - re).abs().max()))
         ended += int((te | ue).sum())
+    if graphed.step_graph.error is not None:
+        return {"graph_error": graphed.step_graph.error}
     return {"graph_obs_max_diff": obs_diff, "graph_reward_max_diff": reward_diff, "graph_check_ended": ended,
             "graph_replays": graphed.step_graph.calls - graphed.step_graph.warmup}
 
@@ -187,6 +189,8 @@ def bench_vector(task_id: str, reference, num_envs: int, device: str, steps: int
         row.update(_checks(task, actions))
         row.update(_graph_matches_eager(task_id, reference, device))
     row["env_steps_per_s"], row["env_ms_per_step"] = _rate(lambda i: task.step(actions[i % 16]), steps, num_envs, dev)
+    if task.step_graph is not None and task.step_graph.error is not None:
+        row["graph_error"] = task.step_graph.error
     if task.step_graph is not None:  # the same env, its step eager (the graph's state is pinned back after)
         row["env_eager_steps_per_s"], _ = _rate(lambda i: task._step(actions[i % 16]), steps, num_envs, dev)
     if free_before is not None:

@@ -26,11 +26,14 @@ How (``StepGraph``):
   not be replayed, so capture refuses one.
 
 The first ``warmup`` calls run eagerly (warp modules load, torch initialises lazily); the next
-call captures, then replays. Only the warp backend on a CUDA device is captured.
+call captures, then replays. Only the warp backend on a CUDA device is captured. A capture that
+fails (a CUDA or driver limitation) leaves the state as before it, warns with the reason
+(``StepGraph.error``) and the step runs eagerly from then on.
 """
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -117,6 +120,12 @@ class StateSlots:
         # output objects (new each step, e.g. the TrackingState): the graph's are kept
         self.slots += [_Slot(s.owner, s.name, new) for s, new in rebound if id(s) not in tensor_rebound]
 
+    def rewind(self) -> None:
+        """After a failed capture: every attribute back to its value before it. Nothing captured
+        ran, so those values are the state before the step."""
+        for s in self._before.values():
+            setattr(s.owner, s.name, s.held)
+
     def restore(self) -> None:
         """Before a replay: attributes rebound outside the graph back onto the graph's values."""
         for s in self.slots:
@@ -153,6 +162,7 @@ class StepGraph:
     def __init__(self, task, eager_step: Callable, warmup: int = 2):
         self.task, self.eager_step, self.warmup = task, eager_step, warmup
         self.calls = 0
+        self.error: str | None = None  # why the capture failed (the step then runs eagerly)
         self.graph: torch.cuda.CUDAGraph | None = None
         self._actions: torch.Tensor | None = None
         self._outputs = None
@@ -160,10 +170,18 @@ class StepGraph:
 
     def __call__(self, actions: torch.Tensor):
         self.calls += 1
-        if self.graph is None and self.calls <= self.warmup:
+        if self.error is not None or (self.graph is None and self.calls <= self.warmup):
             return self.eager_step(actions)
         if self.graph is None:
-            self._capture(actions)
+            try:
+                self._capture(actions)
+            except (RuntimeError, NotImplementedError) as exc:  # torch.AcceleratorError is a RuntimeError
+                self.error = f"{type(exc).__name__}: {exc}".splitlines()[0]
+                self._slots.rewind()
+                warnings.warn(f"the env step could not be captured as a CUDA graph and runs eagerly from now "
+                              f"on ({self.error}); sim.cuda_graph: false skips the attempt", RuntimeWarning,
+                              stacklevel=2)
+                return self.eager_step(actions)
         else:
             self._slots.restore()
             self._actions.copy_(actions)

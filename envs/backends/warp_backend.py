@@ -187,7 +187,9 @@ class WarpBackend(PhysicsBackend):
         if not self.joins_cuda_graphs:
             raise NotImplementedError(f"warp device {self._wp_device} cannot join a CUDA graph capture")
         stream = wp.stream_from_torch(torch.cuda.current_stream(self.device))
-        with wp.ScopedStream(stream):
+        # no sync on entry: making the capturing stream wait on warp's own (uncaptured) stream
+        # would invalidate the capture
+        with wp.ScopedStream(stream, sync_enter=False):
             wp.capture_begin(stream=stream, external=True, force_module_load=False)
             self._joined = True
             try:
