@@ -138,7 +138,8 @@ class QPModel:
     """The Gauss–Newton model of one accepted iterate, reused when a trial step is rejected.
 
     A trial iterate first gets its merit only; ``jac``, ``H``, ``g`` and ``chosen`` are filled
-    by :func:`_assemble` once the trust-region test accepts it."""
+    by :func:`assemble_model` once the trust-region test has accepted it and another step is
+    asked of it (the last accepted trial of a frame's budget is never assembled)."""
 
     lin: Linearisation
     energy: float  # E at the iterate
