@@ -252,7 +252,8 @@ def test_a_saved_tensor_reads_without_torch_as_torch_reads_it(tmp_path, tensor):
     assert x.dtype == expected.dtype and x.shape == expected.shape and np.array_equal(x, expected)
 
 
-@pytest.mark.parametrize("content", [{"motion": torch.zeros(2)}, [torch.zeros(2)], torch.zeros(2, dtype=torch.bfloat16)])
+@pytest.mark.parametrize("content", [{"motion": torch.zeros(2)}, [torch.zeros(2)],
+                                     torch.zeros(2, dtype=torch.bfloat16)])
 def test_anything_but_one_plain_tensor_is_left_to_torch(tmp_path, content):
     from retarget.inputs.torch_file import read_tensor
 
