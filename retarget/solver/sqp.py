@@ -171,9 +171,13 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
 
 def _seed_if_clear(problem: Problem, state: SolverState, seeded: np.ndarray) -> None:
     """Take the warm-start move ``seeded`` unless it brings the robot's meshes further into each
-    other than they are (beyond the penetration tolerance)."""
-    if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
-            _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m):
+    other than they are (beyond the penetration tolerance). A seed whose meshes are clear to within
+    the tolerance is taken without measuring the plain warm start's (the same test: the bar is
+    min(plain, −tolerance))."""
+    if np.array_equal(seeded, state.q):
+        return
+    clear = _self_clearance(problem, state, seeded)
+    if clear >= -problem.solver.penetration_tolerance_m or clear >= _self_clearance(problem, state, state.q):
         state.q = seeded
 
 
