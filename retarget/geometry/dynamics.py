@@ -86,13 +86,70 @@ def twist_steps(q: np.ndarray, dt: float) -> np.ndarray:
 
 
 def lowpass(x: np.ndarray, cutoff_hz: float | None, fps: float) -> np.ndarray:
-    """Zero-phase 4th-order Butterworth along axis 0 (unchanged when off or too short)."""
-    from scipy.signal import butter, filtfilt
-
+    """Zero-phase 4th-order Butterworth along axis 0 (unchanged when off or too short):
+    ``scipy.signal.filtfilt(*scipy.signal.butter(2, cutoff_hz / (0.5 fps)), x, axis=0)``, bit
+    for bit, without importing ``scipy.signal`` (~1 s of a run's start: it imports
+    ``scipy.stats``); ``tests/retarget/checks/test_feasibility.py`` compares the two."""
     if not cutoff_hz or cutoff_hz >= 0.5 * fps or x.shape[0] < 16:
         return x
-    b, a = butter(2, cutoff_hz / (0.5 * fps))  # 2nd order, run forwards and backwards: 4th order
-    return filtfilt(b, a, x, axis=0)
+    b, a = butter2(cutoff_hz / (0.5 * fps))  # 2nd order, run forwards and backwards: 4th order
+    return filtfilt3(b, a, np.asarray(x, np.float64))
+
+
+def butter2(wn: float) -> tuple[np.ndarray, np.ndarray]:
+    """``scipy.signal.butter(2, wn)`` (a digital low pass, 0 < wn < 1): scipy 1.17's own steps
+    (analogue prototype, pre-warp, ``lp2lp_zpk``, ``bilinear_zpk``, ``zpk2tf``) in numpy."""
+    order, fs = 2, 2.0
+    p = -np.exp(1j * np.pi * np.arange(-order + 1, order, 2, dtype=np.float64) / (2 * order))  # buttap
+    warped = float(2 * fs * np.tan(np.pi * np.asarray(wn, dtype=np.float64) / fs))
+    p, k = warped * p, 1.0 * warped ** order  # lp2lp_zpk (no finite zeros)
+    fs2 = 2.0 * fs  # bilinear_zpk
+    p_z = (fs2 + p) / (fs2 - p)
+    z_z = -np.ones(order)
+    k_z = k * np.real(np.prod(fs2 - np.zeros(0)) / np.prod(fs2 - p))
+    return k_z * _poly(z_z), np.real(_poly(p_z)).copy()  # zpk2tf: the poles are a conjugate pair
+
+
+def _poly(roots: np.ndarray) -> np.ndarray:
+    """The monic polynomial of ``roots`` (scipy's ``_polyutils.poly``, before its real part)."""
+    a = np.ones((1,), dtype=roots.dtype)
+    one = np.ones_like(roots[0])
+    for root in roots:
+        a = np.convolve(a, np.stack((one, -root)), mode="full")
+    return a
+
+
+def filtfilt3(b: np.ndarray, a: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``scipy.signal.filtfilt(b, a, x, axis=0)`` for a second-order filter (3 taps): odd
+    extension by 9 samples, the steady state of a step as the initial state, forwards, then
+    backwards; each pass ``lfilter``'s direct form II transposed recurrence in its own order."""
+    edge = 9  # 3 × the taps
+    if x.shape[0] <= edge:
+        raise ValueError(f"The length of the input vector x must be greater than padlen, which is {edge}.")
+    ext = np.concatenate((2 * x[0:1] - x[edge:0:-1], x, 2 * x[-1:] - x[-2:-(edge + 2):-1]), axis=0)
+    b, a = b / a[0], a / a[0]
+    companion = np.zeros((2, 2))  # lfilter_zi
+    companion[0, :] = -a[1:] / (1.0 * a[0:1])
+    companion[1, 0] = 1
+    zi = np.linalg.solve(np.eye(2) - companion.T, b[1:] - a[1:] * b[0]).reshape((2,) + (1,) * (x.ndim - 1))
+    y = _lfilter3(b, a, ext, zi * ext[0:1])
+    y = _lfilter3(b, a, y[::-1], zi * y[-1:])[::-1]
+    return y[edge:-edge]
+
+
+def _lfilter3(b: np.ndarray, a: np.ndarray, x: np.ndarray, zi: np.ndarray) -> np.ndarray:
+    """``scipy.signal.lfilter(b, a, x, axis=0, zi=zi)[0]`` for 3 taps (a[0] = 1): per sample
+    y = z₀ + b₀x, z₀ ← (z₁ + x b₁) − y a₁, z₁ ← x b₂ − y a₂, as scipy's C loop evaluates them."""
+    y = np.empty_like(x)
+    z0, z1 = zi[0].copy(), zi[1].copy()
+    b0, b1, b2, a1, a2 = (float(v) for v in (b[0], b[1], b[2], a[1], a[2]))
+    for n in range(x.shape[0]):
+        xn = x[n]
+        yn = z0 + b0 * xn
+        z0 = z1 + xn * b1 - yn * a1
+        z1 = xn * b2 - yn * a2
+        y[n] = yn
+    return y
 
 
 def velocity_acceleration(step: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -104,7 +104,8 @@ class RobotKinematics:
     def frames(self, data: pin.Data, q: np.ndarray) -> LinkFrames:
         """Link poses and Jacobians at Pinocchio configuration ``q`` (nq,)."""
         pin.computeJointJacobians(self.model, data, q)
-        placement = np.array([m.homogeneous for m in data.oMi])[self.joint_ids]  # (L, 4, 4)
+        # (L, 4, 4); tolist() first: indexing or iterating Pinocchio's vector costs ~0.4 µs an element
+        placement = np.array([m.homogeneous for m in data.oMi.tolist()])[self.joint_ids]
         rot = placement[:, :3, :3]
         pos = placement[:, :3, 3]
         jac = np.empty((NUM_LINKS, 6, self.nv))

@@ -59,7 +59,7 @@ class VoxelGrid:
         """Positions (8, N, 3) and values (8, N, 4) of the corners of each point's cell."""
         i0, _, _ = self._cells(x)
         idx = i0[None] + _CORNERS[:, None]
-        return self.origin + self.resolution * idx, np.take(self.values, idx @ self._strides, axis=0)
+        return self.origin + self.resolution * idx, self.values.take(idx @ self._strides, axis=0)
 
     def interpolate(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Trilinear values (N, 4), their Jacobian (N, 4, 3) and an inside-grid mask (N,).

@@ -221,9 +221,27 @@ def _find_object_mesh(path: Path, object_name: str | None) -> Path:
         f"load_demonstration(..., object_mesh='{object_name}.obj') or otr retarget ... --object {object_name}.obj")
 
 
-def _read_omomo(path: Path, object_mesh: Path | None, ground: bool) -> Demonstration:
-    import torch  # only this reader needs it, and it is slow to import
+def _read_tensor(path: Path, origin: str) -> np.ndarray:
+    """The one tensor of a ``torch.save`` file, without importing torch when the file is the
+    plain layout (``retarget.inputs.torch_file``: ~2 s of a run's start), else by ``torch.load``."""
+    from retarget.inputs.torch_file import read_tensor
 
+    x = read_tensor(path)
+    if x is not None:
+        return x
+    import torch  # slow to import: only for files the plain reader does not take
+
+    try:
+        tensor = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for corrupt or foreign files
+        raise InvalidDemonstrationError(f"{origin}: not a readable torch tensor file ({type(exc).__name__}: {exc})") \
+            from exc
+    if not isinstance(tensor, torch.Tensor):
+        fail(origin, f"expected one tensor (T, {OMOMO_COLUMNS}), got {type(tensor).__name__}")
+    return tensor.detach().cpu().numpy()
+
+
+def _read_omomo(path: Path, object_mesh: Path | None, ground: bool) -> Demonstration:
     from retarget.inputs.human import PART_NAMES, PART_PARENTS, SMPLX_REST_QUAT_W, HumanModel, fit_shape
 
     origin = str(path)
@@ -237,14 +255,7 @@ def _read_omomo(path: Path, object_mesh: Path | None, ground: bool) -> Demonstra
     except InvalidMeshError as exc:
         raise InvalidDemonstrationError(f"{path}: object mesh unusable: {exc}") from exc
 
-    try:
-        tensor = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for corrupt or foreign files
-        raise InvalidDemonstrationError(f"{origin}: not a readable torch tensor file ({type(exc).__name__}: {exc})") \
-            from exc
-    if not isinstance(tensor, torch.Tensor):
-        fail(origin, f"expected one tensor (T, {OMOMO_COLUMNS}), got {type(tensor).__name__}")
-    x = tensor.detach().cpu().numpy().astype(np.float64)
+    x = _read_tensor(path, origin).astype(np.float64)
     if x.ndim != 2 or x.shape[1] != OMOMO_COLUMNS or len(x) < 2:
         fail(origin, f"expected an InterMimic tensor (T ≥ 2, {OMOMO_COLUMNS}), got {x.shape}")
     check_finite(origin, "tensor", x)

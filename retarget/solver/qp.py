@@ -50,7 +50,7 @@ def assemble_cost(rows: Rows, jac: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     m = np.empty((len(starts), 12, 12))
     v = np.empty((len(starts), 12))
     _run_moments(rows.value, rows.weight, rows.phi, np.append(starts, len(rows)), rows.body_b[starts] == FIXED, m, v)
-    j = np.concatenate([np.take(jac, rows.body_a[starts], axis=0), np.take(jac, rows.body_b[starts], axis=0)],
+    j = np.concatenate([jac.take(rows.body_a[starts], axis=0), jac.take(rows.body_b[starts], axis=0)],
                        axis=1).reshape(-1, n)
     mj = (m @ j.reshape(len(starts), 12, n)).reshape(-1, n)
     return j.T @ mj, j.T @ v.ravel()
@@ -138,7 +138,8 @@ class QPModel:
     """The Gauss–Newton model of one accepted iterate, reused when a trial step is rejected.
 
     A trial iterate first gets its merit only; ``jac``, ``H``, ``g`` and ``chosen`` are filled
-    by :func:`_assemble` once the trust-region test accepts it."""
+    by :func:`assemble_model` once the trust-region test has accepted it and another step is
+    asked of it (the last accepted trial of a frame's budget is never assembled)."""
 
     lin: Linearisation
     energy: float  # E at the iterate

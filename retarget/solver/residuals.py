@@ -145,8 +145,8 @@ class Triples:
     geodesic: tuple[np.ndarray, np.ndarray] | None = None
 
     def take(self, index: np.ndarray) -> Triples:
-        geo = None if self.geodesic is None else tuple(np.take(g, index, axis=0) for g in self.geodesic)
-        return Triples(np.take(self.d, index), np.take(self.w, index, axis=0), np.take(self.n, index, axis=0), geo)
+        geo = None if self.geodesic is None else tuple(g.take(index, axis=0) for g in self.geodesic)
+        return Triples(self.d.take(index), self.w.take(index, axis=0), self.n.take(index, axis=0), geo)
 
 
 def to_channel_frame(x_w: np.ndarray, rot_c: np.ndarray, pos_c: np.ndarray) -> np.ndarray:
@@ -401,8 +401,8 @@ def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, flo
     q, desired = pairs.query, pairs.desired
     tangential = np.flatnonzero(beta_bar(desired.d, cfg.sigma_m) > 0.0)
     hat = desired.geodesic
-    gamma, dgamma = channel.geodesic_ratio(np.take(q.w, tangential, axis=0), np.take(desired.w, tangential, axis=0),
-                                           None if hat is None else tuple(np.take(h, tangential, axis=0) for h in hat))
+    gamma, dgamma = channel.geodesic_ratio(q.w.take(tangential, axis=0), desired.w.take(tangential, axis=0),
+                                           None if hat is None else tuple(h.take(tangential, axis=0) for h in hat))
     n = k + 4 * len(tangential)
     value, weight, grad_c, pair = np.empty(n), np.empty(n), np.empty((n, 3)), np.empty(n, np.intp)
     n = _interaction_rows_into(q.d, q.grad_d, q.w, q.dw_dx, desired.d, desired.w, desired.n, pairs.x_c, pairs.norm,
@@ -410,7 +410,7 @@ def interaction_rows(pairs: PairSet, channel: Channel, weights: tuple[float, flo
                                float(cfg.beta_max), value, weight, grad_c, pair)
     phi = channel_twist_factors(grad_c[:n], pair[:n], pairs.rot_c, pairs.x_w, pairs.origin_a,
                                 None if pairs.body_b == FIXED else pairs.pos_c)
-    return Rows(value[:n], weight[:n], phi, np.take(pairs.body_a, pair[:n]), np.full(n, pairs.body_b, dtype=np.intp))
+    return Rows(value[:n], weight[:n], phi, pairs.body_a.take(pair[:n]), np.full(n, pairs.body_b, dtype=np.intp))
 
 
 @numba.njit(cache=True)

@@ -91,8 +91,8 @@ def candidate_links(problem: Problem, track: ChannelTrack, centre_w: np.ndarray,
 
 
 def rows_take(rows: Rows, index: np.ndarray) -> Rows:
-    return Rows(np.take(rows.value, index), np.take(rows.weight, index), np.take(rows.phi, index, axis=0),
-                np.take(rows.body_a, index), np.take(rows.body_b, index))
+    return Rows(rows.value.take(index), rows.weight.take(index), rows.phi.take(index, axis=0),
+                rows.body_a.take(index), rows.body_b.take(index))
 
 
 def _distance_block(track: ChannelTrack, rot_c: np.ndarray, pos_c: np.ndarray, x_w: np.ndarray, x_c: np.ndarray,
@@ -157,17 +157,17 @@ def _robot_channel(problem: Problem, state: SolverState, targets: FrameTargets, 
         # for the interaction and the contact-state rows alike. Without it the G1's pelvis and
         # right knee stayed 19–22 cm from the chair the person leans on (a hold row with a zero
         # Jacobian never moves them).
-        x_a = np.take(x_c, active, axis=0)
+        x_a = x_c.take(active, axis=0)
         desired = targets.robot[c].take(sel[active])
-        pairs = _RobotPairs(c, rot_c, pos_c, sel[active], np.take(x_w, active, axis=0), x_a,
+        pairs = _RobotPairs(c, rot_c, pos_c, sel[active], x_w.take(active, axis=0), x_a,
                             far_field(q, active, x_a, desired, track.is_ground), desired)
         # Against the ground the hull vertices (guards) imply every area probe: skip those.
         if not track.is_ground:
             ib = np.flatnonzero(q.in_band & (q.d < check))
             body = problem.robot.body[sel[ib]]
-            con.add(_distance_block(track, rot_c, pos_c, np.take(x_w, ib, axis=0), np.take(x_c, ib, axis=0), body,
-                                    np.take(fr.pos, body, axis=0), q.d[ib], np.take(q.grad_d, ib, axis=0),
-                                    np.take(problem.surface_margin, body)), c)
+            con.add(_distance_block(track, rot_c, pos_c, x_w.take(ib, axis=0), x_c.take(ib, axis=0), body,
+                                    fr.pos.take(body, axis=0), q.d[ib], q.grad_d.take(ib, axis=0),
+                                    problem.surface_margin.take(body)), c)
     link_min = np.minimum.reduceat(probe_d, problem.robot.offsets[:-1])
     # Guard points: the distance field is 1-Lipschitz, so a guard is at least as far as its
     # nearest area probe (its anchor) minus their separation; only guards whose bound is
@@ -235,9 +235,9 @@ def _guard_rows(problem: Problem, fr: LinkFrames, track: ChannelTrack, rot_c: np
         d, grad, in_band = channel.distance(g_c)
         ib = np.flatnonzero(in_band & (d < check))
         body = gb[ib]
-        return _distance_block(track, rot_c, pos_c, np.take(g_w, ib, axis=0), np.take(g_c, ib, axis=0), body,
-                               np.take(fr.pos, body, axis=0), d[ib], np.take(grad, ib, axis=0),
-                               np.take(problem.surface_margin, body))
+        return _distance_block(track, rot_c, pos_c, g_w.take(ib, axis=0), g_c.take(ib, axis=0), body,
+                               fr.pos.take(body, axis=0), d[ib], grad.take(ib, axis=0),
+                               problem.surface_margin.take(body))
     n = len(index)
     value, phi, body, x_w, grad_c = (np.empty(n), np.empty((n, 12)), np.empty(n, np.intp), np.empty((n, 3)),
                                      np.empty((n, 3)))
@@ -353,7 +353,7 @@ def _robot_cost(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
     for p in pairs:
         track = problem.channels[p.channel]
         body = problem.robot.body[p.probes]
-        ps = PairSet(p.x_w, p.x_c, np.take(fr.pos, body, axis=0), body, track.body, p.rot_c, p.pos_c, p.query,
+        ps = PairSet(p.x_w, p.x_c, fr.pos.take(body, axis=0), body, track.body, p.rot_c, p.pos_c, p.query,
                      p.desired, norm_link[body])
         cost.append(interaction_rows(ps, track.channel, problem.interaction.robot_weights, problem.interaction))
     return cost, sum(len(p.probes) for p in pairs), link_counts
@@ -427,7 +427,7 @@ def _contact_state_rows(problem: Problem, fr: LinkFrames, pairs: list[_RobotPair
         link = problem.robot.body[p.probes[k]]
         track = problem.channels[p.channel]
         rows = signed_distance_rows(p.query.d[k] - selection.target[mine], p.query.grad_d[k], p.x_w[k],
-                                    np.take(fr.pos, link, axis=0), link, track.body, p.rot_c, p.pos_c)
+                                    fr.pos.take(link, axis=0), link, track.body, p.rot_c, p.pos_c)
         # a far-field pull (beyond the band) moves the robot's part in, never the object out to
         # it: dragged by the pelvis the person leans on, the free chair drifted 5.6 cm off its path
         far = ~p.query.in_band[k]
@@ -457,17 +457,17 @@ def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i:
         sel = np.flatnonzero(near_channel(track, o_c, band) | demo_active)
         if len(sel) == 0:
             continue
-        q = track.channel.query(np.take(o_c, sel, axis=0), normals=False)
+        q = track.channel.query(o_c.take(sel, axis=0), normals=False)
         active = np.flatnonzero(q.in_band | demo_active[sel])
         a = sel[active]
-        a_c = np.take(o_c, a, axis=0)
+        a_c = o_c.take(a, axis=0)
         pairs.append((c, track, rot_c, pos_c, a, a_c,
                       far_field(q, active, a_c, targets.objects[i][c].take(a), track.is_ground)))
         ib = np.flatnonzero(q.in_band & (q.d < check))
         pts = sel[ib]
-        con.add(_distance_block(track, rot_c, pos_c, np.take(o_w, pts, axis=0), np.take(o_c, pts, axis=0),
+        con.add(_distance_block(track, rot_c, pos_c, o_w.take(pts, axis=0), o_c.take(pts, axis=0),
                                 np.full(len(ib), body), np.broadcast_to(state.obj_pos[i], (len(ib), 3)),
-                                q.d[ib], np.take(q.grad_d, ib, axis=0)), c)
+                                q.d[ib], q.grad_d.take(ib, axis=0)), c)
         # the object's own hull guards against the ground, furniture and other objects
         g_w = own.guards @ state.obj_rot[i].T + state.obj_pos[i]
         g_c = to_channel_frame(g_w, rot_c, pos_c)

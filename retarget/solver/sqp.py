@@ -74,6 +74,8 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
     model = model_at(problem, state, lin, stats.timings)
     scale = 1.0
     for _ in range(budget):
+        if model.H is None:  # an accepted trial's QP, assembled only once another step is asked of it
+            assemble_model(problem, state, model, stats.timings)
         delta = qp_step(problem, state, targets, model, scale, stats)
         stats.iterations += 1
         step = float(np.abs(delta).max())
@@ -89,7 +91,6 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         trial_model = model_at(problem, state, trial, stats.timings, assemble=False)
         gain = model.merit - trial_model.merit
         if gain > 0.1 * max(predicted, 0.0) and gain > 0.0:
-            assemble_model(problem, state, trial_model, stats.timings)
             model = trial_model
             if gain > 0.75 * predicted:
                 scale = min(1.0, 2.0 * scale)
@@ -170,9 +171,13 @@ def warm_start(problem: Problem, state: SolverState, t: int, held: np.ndarray) -
 
 def _seed_if_clear(problem: Problem, state: SolverState, seeded: np.ndarray) -> None:
     """Take the warm-start move ``seeded`` unless it brings the robot's meshes further into each
-    other than they are (beyond the penetration tolerance)."""
-    if not np.array_equal(seeded, state.q) and _self_clearance(problem, state, seeded) >= min(
-            _self_clearance(problem, state, state.q), -problem.solver.penetration_tolerance_m):
+    other than they are (beyond the penetration tolerance). A seed whose meshes are clear to within
+    the tolerance is taken without measuring the plain warm start's (the same test: the bar is
+    min(plain, −tolerance))."""
+    if np.array_equal(seeded, state.q):
+        return
+    clear = _self_clearance(problem, state, seeded)
+    if clear >= -problem.solver.penetration_tolerance_m or clear >= _self_clearance(problem, state, state.q):
         state.q = seeded
 
 

@@ -306,3 +306,26 @@ def test_verify_refuses_a_negative_object_mass(tmp_path, capsys):
     path = _ref(_clip(10)).save(tmp_path / "stand.npz")
     assert cli.main(["verify", str(path), "--object-mass-kg", "-1"]) == 2
     assert "--object-mass-kg -1" in capsys.readouterr().err
+
+
+def test_the_lowpass_is_scipys_butterworth_filtfilt_bit_for_bit():
+    """``lowpass`` computes ``filtfilt(*butter(2, wn), x, axis=0)`` without importing
+    scipy.signal (its import is ~1 s of a retarget run's start): the same bits, for any cut-off
+    and the array shapes the callers pass (twists (T, nv), positions (T, 3), (T, k, 3))."""
+    from scipy.signal import butter, filtfilt
+
+    from retarget.geometry.dynamics import butter2, lowpass
+
+    rng = np.random.default_rng(0)
+    for wn in np.concatenate([rng.uniform(0.01, 0.99, 500), [0.1, 0.2, 0.4, 0.5]]):
+        b, a = butter(2, wn)
+        b2, a2 = butter2(wn)
+        assert np.array_equal(b, b2) and np.array_equal(a, a2), wn
+    for trial in range(60):
+        fps, cutoff = float(rng.choice([30.0, 50.0, 60.0, 120.0])), float(rng.uniform(1.0, 14.0))
+        shape = [(int(rng.integers(16, 400)),), (int(rng.integers(16, 400)), 35), (int(rng.integers(16, 60)), 4, 3)]
+        x = rng.normal(size=shape[trial % 3]) * 10.0 ** rng.uniform(-3, 2)
+        expected = filtfilt(*butter(2, cutoff / (0.5 * fps)), x, axis=0)
+        assert np.array_equal(lowpass(x, cutoff, fps), expected), (trial, x.shape)
+    short, long = rng.normal(size=(15, 3)), rng.normal(size=(40, 3))
+    assert lowpass(short, 5.0, 50.0) is short and lowpass(long, None, 50.0) is long  # too short, off

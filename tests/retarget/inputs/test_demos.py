@@ -236,6 +236,43 @@ def _minimal_omomo_tensor(frames: int = 12) -> torch.Tensor:
     return x
 
 
+@pytest.mark.parametrize("tensor", [
+    torch.arange(12, dtype=torch.float64).reshape(3, 4).T,  # strided
+    torch.arange(10, dtype=torch.float32)[3:],  # offset into its storage
+    torch.zeros(0, 5), torch.tensor(3.0), torch.arange(6)[::2],
+    torch.ones(4, 591, requires_grad=True),  # as OMOMO's files are saved
+])
+def test_a_saved_tensor_reads_without_torch_as_torch_reads_it(tmp_path, tensor):
+    from retarget.inputs.torch_file import read_tensor
+
+    path = tmp_path / "x.pt"
+    torch.save(tensor, path)
+    x = read_tensor(path)
+    expected = tensor.detach().numpy()
+    assert x.dtype == expected.dtype and x.shape == expected.shape and np.array_equal(x, expected)
+
+
+@pytest.mark.parametrize("content", [{"motion": torch.zeros(2)}, [torch.zeros(2)],
+                                     torch.zeros(2, dtype=torch.bfloat16)])
+def test_anything_but_one_plain_tensor_is_left_to_torch(tmp_path, content):
+    from retarget.inputs.torch_file import read_tensor
+
+    torch.save(content, tmp_path / "x.pt")
+    assert read_tensor(tmp_path / "x.pt") is None
+    torch.save(torch.zeros(2), tmp_path / "legacy.pt", _use_new_zipfile_serialization=False)
+    assert read_tensor(tmp_path / "legacy.pt") is None
+    (tmp_path / "garbage.pt").write_bytes(b"\x00garbage")
+    assert read_tensor(tmp_path / "garbage.pt") is None
+
+
+def test_omomo_clips_read_without_torch_as_torch_reads_them(shared_data):
+    from retarget.inputs.torch_file import read_tensor
+
+    for path in sorted((shared_data / "omomo").glob("*.pt")):
+        expected = torch.load(path, weights_only=True).detach().numpy()
+        assert np.array_equal(read_tensor(path), expected), path.name
+
+
 def test_omomo_corrupt_file_and_missing_mesh_are_reported(tmp_path):
     corrupt = tmp_path / "sub1_largebox_000.pt"
     corrupt.write_bytes(b"\x00garbage")
