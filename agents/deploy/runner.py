@@ -179,12 +179,15 @@ class Runner:
                     inp = CycleInput(t_s=t_s, state=None if msg is None else robot_state(msg),
                                      crc_ok=True if msg is None else crc.crc_ok(msg), keys=keys,
                                      mocap=None if mocap is None else mocap_frame(mocap))
+                    received = time.perf_counter_ns() - clock.t0
                     stage_before = c.stage
                     out = c.step(inp)
+                    decided = time.perf_counter_ns() - clock.t0
                     if out.command is not None:
                         self.writer.write(crc.with_crc(low_cmd(out.command, c.state.mode_machine if c.state else 0)))
                     publish = time.perf_counter_ns() - clock.t0
-                    self.log.append(inp, out, deadline, wake, publish)
+                    policy_ns = getattr(c.policy, "last_ns", 0) if out.action is not None else 0
+                    self.log.append(inp, out, deadline, wake, publish, received, decided, policy_ns)
                     if out.stage != stage_before:
                         print(f"[{t_s:7.2f} s] {stage_before.name} -> {out.stage.name} "
                               f"({c.stages.transitions[-1].reason})", flush=True)
