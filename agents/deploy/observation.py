@@ -49,7 +49,7 @@ from envs.mdp.metrics import mpjpe_root_relative
 from envs.mdp.motion import MotionLibrary
 from envs.mdp.state import ObjectState, TrackingState
 from otr_gym import robot
-from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_conj, quat_mul, quat_to_matrix, quat_yaw
+from otr_gym.rotations import quat_apply, quat_apply_inverse, quat_conj, quat_mul, quat_yaw
 from otr_gym.scene import robot_model
 
 #: Sources beyond the LowState that an observation term can need: motion capture (``--mocap``,
@@ -180,8 +180,11 @@ class RobotKinematics:
 
 
 def torso_tilt_rad(anchor_quat_wxyz: np.ndarray) -> float:
-    """Angle (rad) between the body's z axis and the world's vertical."""
-    return float(np.arccos(np.clip(quat_to_matrix(anchor_quat_wxyz)[2, 2], -1.0, 1.0)))
+    """Angle (rad) between the body's z axis and the world's vertical: the rotation matrix's
+    z-z entry, 1 − 2(x² + y²), as ``quat_to_matrix`` computes it (the same float64 arithmetic,
+    without building the 3×3 matrix: ~0.1 ms, twice a cycle, in the runner)."""
+    _, x, y, _ = (float(v) for v in anchor_quat_wxyz)
+    return float(np.arccos(np.clip(1 - 2 * (x * x + y * y), -1.0, 1.0)))
 
 
 def reference_objects(reference, fps: float, num_frames: int):
