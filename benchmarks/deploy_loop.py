@@ -3,7 +3,7 @@ DDS while N CPU-bound processes load the machine, normal scheduling (no real-tim
 one or more runner versions side by side; a table of the loop's period error, missed deadlines
 and where each cycle's compute goes.
 
-    python benchmarks/deploy_loop.py [--duration 30] [--busy 0 2] [--rounds 2]
+    python benchmarks/deploy_loop.py [--duration 30] [--busy 0 2] [--rounds 2] [--load-session same|own]
                                      [--variant NAME=CHECKOUT[:DEPLOY ARGS]] ... [--out DIR]
 
 A *variant* is a checkout of this repository (``git worktree add --detach /tmp/base COMMIT``)
@@ -63,14 +63,15 @@ def cpu_steal() -> tuple[int, int]:
 
 
 def one_run(variant: tuple[str, Path, list[str]], busy: int, reference: Path, policy: Path, out: Path,
-            duration: float, domain: int) -> dict:
+            duration: float, domain: int, load_session: bool = False) -> dict:
     from agents.deploy.log import DeployLog, cycle_split_ms, timing_stats
     from agents.deploy.safety import Stage
 
     name, checkout, extra = variant
     tag = f"{name}_busy{busy}_{time.strftime('%H%M%S')}"
     load = os.getloadavg()[0]
-    load_procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
+    load_procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"], start_new_session=load_session)
+                  for _ in range(busy)]
     steal0 = cpu_steal()
     cli = [sys.executable, "-m", "otr_gym.cli"]
     common = ["--interface", "lo", "--domain-id", str(domain)]
@@ -103,6 +104,7 @@ def one_run(variant: tuple[str, Path, list[str]], busy: int, reference: Path, po
     tm = timing_stats(a["deadline_ns"][sel], a["wake_ns"][sel], a["publish_ns"][sel], period_ns)
     return {
         "variant": name, "checkout": str(checkout), "deploy_args": extra, "busy": busy, "load_1min": load,
+        "load_session": "own" if load_session else "same",
         "steal_pct": 100.0 * (steal1[0] - steal0[0]) / max(steal1[1] - steal0[1], 1), "log": str(log_path),
         "runner_rc": run.returncode, "ended": log.transitions()[-1][3] if log.transitions() else "",
         "tracking_cycles": int(track.size), "missed": tm["missed_deadlines"],
@@ -152,6 +154,10 @@ def main() -> int:
     p.add_argument("--variant", type=parse_variant, action="append", default=None,
                    help="NAME=CHECKOUT[:DEPLOY ARGS] (repeatable; default: this checkout)")
     p.add_argument("--busy", type=int, nargs="+", default=[0, 2], help="CPU-bound processes beside the loops")
+    p.add_argument("--load-session", choices=("same", "own"), default="same",
+                   help="the busy processes in the benchmark's session, with the runner and the sim robot "
+                        "(default), or each in its own, as another program's (Linux's autogroups then share the "
+                        "CPU between sessions first)")
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--duration", type=float, default=30.0, help="seconds of tracking a run")
     p.add_argument("--domain-id", type=int, default=210)
@@ -171,7 +177,8 @@ def main() -> int:
         for busy in args.busy:
             order = variants if r % 2 == 0 else variants[::-1]
             for v in order:
-                row = one_run(v, busy, reference, policy, out, args.duration, args.domain_id)
+                row = one_run(v, busy, reference, policy, out, args.duration, args.domain_id,
+                              args.load_session == "own")
                 e = pct(row["period_error_ms"])
                 print(f"round {r} busy {busy} {v[0]}: load {row['load_1min']:.1f}, steal {row['steal_pct']:.1f} %, "
                       f"{row['tracking_cycles']} cycles, period error p99 {e[2]:.3f} max {e[3]:.3f} ms, "
@@ -179,8 +186,8 @@ def main() -> int:
                 rows.append(row)
                 (out / "results.json").write_text(json.dumps(rows))
     print(f"\n{platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, kernel {platform.release()}, "
-          f"{time.strftime('%Y-%m-%d')}, normal scheduling, {args.duration:g} s tracking a run, {args.rounds} "
-          f"round(s); files in {out}\n")
+          f"{time.strftime('%Y-%m-%d')}, normal scheduling, busy processes in the {args.load_session} session, "
+          f"{args.duration:g} s tracking a run, {args.rounds} round(s); files in {out}\n")
     print(table(rows))
     return 0
 
