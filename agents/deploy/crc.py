@@ -13,12 +13,13 @@ matters for a 500 Hz LowState. ``crc32_reference`` is the plain bit loop, for te
 
 from __future__ import annotations
 
+import re
 import struct
 import zlib
 
 import numpy as np
 
-from agents.deploy.messages import NUM_MOTORS, LowCmd_, LowState_, low_state_fields
+from agents.deploy.messages import LOWSTATE_XCDR1, NUM_MOTORS, LowCmd_, LowState_, low_cmd_fields, low_state_fields
 
 POLYNOMIAL = 0x04C11DB7
 #: C-struct packing (docs/environment.md §9): header, 35 motor records, reserve + crc.
@@ -57,16 +58,51 @@ def crc32_reference(words: list[int]) -> int:
 
 def pack_low_cmd(msg: LowCmd_) -> bytes:
     """The 1004-byte C layout of a LowCmd_ (its ``crc`` field included, as the last word)."""
-    values: list = [msg.mode_pr, msg.mode_machine]
-    for m in msg.motor_cmd:
-        values += (m.mode, m.q, m.dq, m.tau, m.kp, m.kd, m.reserve)
-    values += (*msg.reserve, msg.crc)
-    return struct.pack(LOWCMD_FORMAT, *values)
+    return struct.pack(LOWCMD_FORMAT, *low_cmd_fields(msg))
 
 
 def pack_low_state(msg: LowState_) -> bytes:
     """The 2092-byte C layout of a LowState_ (its ``crc`` field included, as the last word)."""
     return struct.pack(LOWSTATE_FORMAT, *low_state_fields(msg))
+
+
+def _field_bytes(fmt: str) -> list[range]:
+    """The byte ranges of each value a little-endian ``struct`` format packs (pads left out)."""
+    out, offset = [], 0
+    for count, code in re.findall(r"(\d*)([a-zA-Z])", fmt.lstrip("<")):
+        n, size = int(count or 1), struct.calcsize("<" + code)
+        if code == "x":
+            offset += n
+        elif code == "s":
+            out.append(range(offset, offset + n))
+            offset += n
+        else:
+            out += [range(offset + i * size, offset + (i + 1) * size) for i in range(n)]
+            offset += n * size
+    return out
+
+
+def _cdr_to_c_index() -> np.ndarray:
+    """For each byte of the C layout of a LowState (``LOWSTATE_FORMAT``) the byte of its XCDR1
+    sample (``messages.LOWSTATE_XCDR1``, header included) that holds it; pads point one past
+    the sample, where ``low_state_crc_ok_cdr`` puts a zero (``pack_low_state`` packs zeros)."""
+    c, cdr = _field_bytes(LOWSTATE_FORMAT), _field_bytes(LOWSTATE_XCDR1.format)[1:]  # [1:]: the header
+    index = np.full(LOWSTATE_PACKED_BYTES, LOWSTATE_XCDR1.size, dtype=np.intp)
+    for dst, src in zip(c, cdr, strict=True):
+        index[dst.start:dst.stop] = np.arange(src.start, src.stop)
+    return index
+
+
+_CDR_TO_C = _cdr_to_c_index()
+
+
+def low_state_crc_ok_cdr(data: bytes) -> bool:
+    """``crc_ok(LowState_.deserialize(data))`` from the XCDR1 little-endian bytes alone
+    (``messages.is_low_state_xcdr1``): the C layout gathered from them in one NumPy step, then
+    the same CRC. Equal on real and corrupted samples (``tests/agents/deploy/test_deploy_messages.py``)."""
+    sample = np.frombuffer(data, np.uint8, count=LOWSTATE_XCDR1.size)
+    packed = np.append(sample, np.uint8(0))[_CDR_TO_C].tobytes()
+    return int.from_bytes(packed[-4:], "little") == crc32_words(packed[:-4])
 
 
 def low_cmd_crc(msg: LowCmd_) -> int:

@@ -17,7 +17,8 @@ from __future__ import annotations
 
 from xml.sax.saxutils import quoteattr
 
-from cyclonedds.core import DDSException
+from cyclonedds._clayer import ddspy_take
+from cyclonedds.core import DDSException, InstanceState, SampleState, ViewState
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
@@ -27,6 +28,7 @@ from cyclonedds.topic import Topic
 from agents.deploy.messages import TOPIC_LOWCMD, TOPIC_LOWSTATE, LowCmd_, LowState_
 
 LOOPBACK_INTERFACES = ("lo", "lo0")
+_ANY_SAMPLE = SampleState.Any | ViewState.Any | InstanceState.Any
 MAX_LOCAL_PARTICIPANTS = 20
 
 
@@ -80,6 +82,18 @@ class G1Domain:
     def latest_reader(self, topic: Topic) -> DataReader:
         qos = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(1))
         return DataReader(self.participant, topic, qos=qos)
+
+
+def take_latest_bytes(reader: DataReader) -> bytes | None:
+    """``take_latest`` without decoding: the newest unread sample's serialized bytes (CDR with
+    its encapsulation header), or None. The runner reads the LowState from these bytes itself
+    (``messages.robot_state_from_cdr``); CycloneDDS's ``take`` would build the message object
+    first. Uses the C layer's take, as ``DataReader.take`` does."""
+    ret = ddspy_take(reader._ref, _ANY_SAMPLE, 4)
+    if isinstance(ret, int):
+        raise DDSException(ret, f"Occurred while taking data in {reader!r}")
+    samples = [data for data, info in ret if info.valid_data]
+    return samples[-1] if samples else None
 
 
 def take_latest(reader: DataReader):

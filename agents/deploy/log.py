@@ -5,8 +5,10 @@ command and stage, saved as one ``.npz`` (atomically) that ``otr inspect`` summa
 Arrays (C cycles; NaN where a quantity did not exist that cycle, e.g. no action before TRACK):
 
 - timing (int64 ns from the runner's start, steady clock): ``deadline_ns`` (the cycle's slot on
-  the absolute 50 Hz grid), ``wake_ns`` (loop woke), ``publish_ns`` (LowCmd written);
-  ``t_s`` (float64 s, the controller's time input);
+  the absolute 50 Hz grid), ``wake_ns`` (loop woke), ``received_ns`` (the LowState taken,
+  decoded and its CRC checked), ``decided_ns`` (the controller done), ``publish_ns`` (LowCmd
+  written); ``policy_ns`` (the ONNX run's own duration, 0 when no policy ran); ``t_s`` (float64
+  s, the controller's time input);
 - inputs: ``fresh`` (a new LowState arrived), ``crc_ok``, ``keys`` (keyboard KEY_* bits),
   ``state_q``/``state_dq`` (C, 29), ``state_quat_wxyz`` (C, 4), ``state_gyro_b``,
   ``state_accel_b`` (C, 3), ``state_tick_ms``, ``state_mode_machine``, ``state_remote_keys``;
@@ -82,6 +84,7 @@ class CycleLog:
         J = robot.NUM_JOINTS
         self._shapes = {
             "deadline_ns": ((), np.int64), "wake_ns": ((), np.int64), "publish_ns": ((), np.int64),
+            "received_ns": ((), np.int64), "decided_ns": ((), np.int64), "policy_ns": ((), np.int64),
             "t_s": ((), np.float64), "fresh": ((), bool), "crc_ok": ((), bool), "keys": ((), np.int8),
             "state_q": ((J,), np.float64), "state_dq": ((J,), np.float64), "state_quat_wxyz": ((4,), np.float64),
             "state_gyro_b": ((3,), np.float64), "state_accel_b": ((3,), np.float64),
@@ -101,11 +104,13 @@ class CycleLog:
         fill = np.nan if np.issubdtype(dtype, np.floating) else 0
         return np.full((rows, *shape), fill, dtype=dtype)
 
-    def append(self, inp: CycleInput, out: CycleOutput, deadline_ns: int, wake_ns: int, publish_ns: int) -> None:
+    def append(self, inp: CycleInput, out: CycleOutput, deadline_ns: int, wake_ns: int, publish_ns: int,
+               received_ns: int = 0, decided_ns: int = 0, policy_ns: int = 0) -> None:
         if self.n == len(self._arrays["t_s"]):
             self._arrays = {k: np.concatenate([a, self._empty(k, self.CHUNK)]) for k, a in self._arrays.items()}
         a, i = self._arrays, self.n
         a["deadline_ns"][i], a["wake_ns"][i], a["publish_ns"][i] = deadline_ns, wake_ns, publish_ns
+        a["received_ns"][i], a["decided_ns"][i], a["policy_ns"][i] = received_ns, decided_ns, policy_ns
         a["t_s"][i], a["fresh"][i] = inp.t_s, inp.state is not None
         a["crc_ok"][i], a["keys"][i] = inp.crc_ok, inp.keys
         s = inp.state
@@ -221,8 +226,9 @@ def timing_stats(deadline_ns: np.ndarray, wake_ns: np.ndarray, publish_ns: np.nd
 
     def pct(x: np.ndarray) -> dict:
         if x.size == 0:
-            return {"p50": float("nan"), "p99": float("nan"), "max": float("nan")}
-        return {"p50": float(np.percentile(x, 50)), "p99": float(np.percentile(x, 99)), "max": float(x.max())}
+            return {"p50": float("nan"), "p95": float("nan"), "p99": float("nan"), "max": float("nan")}
+        p50, p95, p99 = np.percentile(x, [50, 95, 99])
+        return {"p50": float(p50), "p95": float(p95), "p99": float(p99), "max": float(x.max())}
 
     return {
         "cycles": int(len(wake_ns)),
@@ -236,6 +242,25 @@ def timing_stats(deadline_ns: np.ndarray, wake_ns: np.ndarray, publish_ns: np.nd
 def log_timing(log: DeployLog) -> dict:
     a = log.arrays
     return timing_stats(a["deadline_ns"], a["wake_ns"], a["publish_ns"], int(log.meta["period_ns"]))
+
+
+#: The parts of a cycle's compute (``cycle_split_ms``): take, decode and CRC-check the LowState;
+#: the controller without the ONNX run (stages, kinematics, observation); the ONNX run; build,
+#: CRC, serialise and write the LowCmd, and the log row's bookkeeping before ``publish_ns``.
+SPLIT = ("receive", "controller", "policy", "send")
+
+
+def cycle_split_ms(log: DeployLog, cycles: np.ndarray | None = None) -> dict[str, np.ndarray] | None:
+    """Each cycle's compute in ms by part (``SPLIT``) over ``cycles`` (a mask or indices; all by
+    default); None for a log written before the runner recorded the parts."""
+    a = log.arrays
+    if "received_ns" not in a:
+        return None
+    sel = slice(None) if cycles is None else cycles
+    wake, received, decided, publish = (a[k][sel] for k in ("wake_ns", "received_ns", "decided_ns", "publish_ns"))
+    policy = a["policy_ns"][sel]
+    return {"receive": (received - wake) * 1e-6, "controller": (decided - received - policy) * 1e-6,
+            "policy": policy * 1e-6, "send": (publish - decided) * 1e-6}
 
 
 def summary_rows(log: DeployLog) -> list[tuple[str, str]]:

@@ -6,6 +6,7 @@ thread pool waking up on a 2-core computer that also runs the robot simulation.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ from otr_gym import robot
 
 
 class OnnxPolicy:
-    """``policy(obs (D,) float32) -> action (29,) float32``."""
+    """``policy(obs (D,) float32) -> action (29,) float32``; ``last_ns``: how long the last run took."""
 
     def __init__(self, path: str | Path, spec: PolicySpec):
         import onnxruntime as ort
@@ -25,6 +26,7 @@ class OnnxPolicy:
         options.inter_op_num_threads = 1
         options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         self.path = Path(path)
+        self.last_ns = 0
         self.session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         inputs = {i.name: i.shape for i in self.session.get_inputs()}
         outputs = {o.name: o.shape for o in self.session.get_outputs()}
@@ -38,5 +40,8 @@ class OnnxPolicy:
             raise PolicySpecError(f"{path}: output 'actions' has {acts} values, the G1 has {robot.NUM_JOINTS} joints")
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
+        start = time.perf_counter_ns()
         x = np.ascontiguousarray(obs, dtype=np.float32)[None]
-        return self.session.run(["actions"], {"obs": x})[0][0]
+        action = self.session.run(["actions"], {"obs": x})[0][0]
+        self.last_ns = time.perf_counter_ns() - start
+        return action

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import gc
 import os
 import platform
 import select
@@ -28,7 +29,7 @@ import numpy as np
 from agents.deploy import crc
 from agents.deploy.controller import KEY_ESTOP, KEY_START, KEY_STOP, Controller, ControllerCfg, CycleInput
 from agents.deploy.log import NS, CycleLog, DeployLog, file_sha256, log_file
-from agents.deploy.messages import low_cmd, robot_state
+from agents.deploy.messages import LowState_, RobotState, is_low_state_xcdr1, low_cmd, robot_state, robot_state_from_cdr
 from agents.deploy.mocap import TOPIC_MOCAP, MocapFault, mocap_frame, name_map
 from agents.deploy.observation import ESTIMATOR, MOCAP, ObservationBuilder, PolicySpec, PolicySpecError
 from agents.deploy.onnx_policy import OnnxPolicy
@@ -61,6 +62,16 @@ class DeadlineClock:
         deadline = self.deadline
         self.deadline += self.period_ns
         return deadline - self.t0, now - self.t0
+
+
+def read_low_state(data: bytes) -> tuple[RobotState, bool]:
+    """A LowState sample's robot state and whether its CRC matches, from its bytes: straight from
+    the XCDR1 little-endian layout the G1 and ``otr sim-robot`` send (~0.03 ms), else through
+    ``LowState_`` (~0.2 ms). The same values either way (``tests/agents/deploy/test_deploy_messages.py``)."""
+    if is_low_state_xcdr1(data):
+        return robot_state_from_cdr(data), crc.low_state_crc_ok_cdr(data)
+    msg = LowState_.deserialize(data)
+    return robot_state(msg), crc.crc_ok(msg)
 
 
 def set_realtime_priority(priority: int) -> None:
@@ -160,9 +171,16 @@ class Runner:
             raise KeyboardInterrupt
 
     def run(self) -> int:
-        from agents.deploy.dds import take_latest
+        from agents.deploy.dds import take_latest, take_latest_bytes
 
         c = self.controller
+        # A full collection walks the ~400k objects torch, MuJoCo and onnxruntime set up (100-300 ms
+        # here, at whatever allocation triggers it): freeze them out of the collector, and collect
+        # what the loop makes only in a cycle's slack (``_collect_garbage``).
+        gc_enabled = gc.isenabled()
+        gc.collect()
+        gc.freeze()
+        gc.disable()
         clock = DeadlineClock(self.period_ns, self.spin_ns)
         damp_since: float | None = None
         previous = signal.signal(signal.SIGINT, self._on_sigint)
@@ -173,18 +191,21 @@ class Runner:
                 while True:
                     deadline, wake = clock.wait()
                     t_s = wake / NS
-                    msg = take_latest(self.reader)
+                    data = take_latest_bytes(self.reader)
+                    state, crc_ok = (None, True) if data is None else read_low_state(data)
                     mocap = None if self.mocap_reader is None else take_latest(self.mocap_reader)
                     keys = keyboard.keys() | (KEY_STOP if self._sigints else 0)
-                    inp = CycleInput(t_s=t_s, state=None if msg is None else robot_state(msg),
-                                     crc_ok=True if msg is None else crc.crc_ok(msg), keys=keys,
+                    inp = CycleInput(t_s=t_s, state=state, crc_ok=crc_ok, keys=keys,
                                      mocap=None if mocap is None else mocap_frame(mocap))
+                    received = time.perf_counter_ns() - clock.t0
                     stage_before = c.stage
                     out = c.step(inp)
+                    decided = time.perf_counter_ns() - clock.t0
                     if out.command is not None:
                         self.writer.write(crc.with_crc(low_cmd(out.command, c.state.mode_machine if c.state else 0)))
                     publish = time.perf_counter_ns() - clock.t0
-                    self.log.append(inp, out, deadline, wake, publish)
+                    policy_ns = getattr(c.policy, "last_ns", 0) if out.action is not None else 0
+                    self.log.append(inp, out, deadline, wake, publish, received, decided, policy_ns)
                     if out.stage != stage_before:
                         print(f"[{t_s:7.2f} s] {stage_before.name} -> {out.stage.name} "
                               f"({c.stages.transitions[-1].reason})", flush=True)
@@ -199,11 +220,23 @@ class Runner:
                               f"{self.dds.domain_id} within {self.wait_timeout_s:g} s", file=sys.stderr)
                         status = 3
                         break
+                    self._collect_garbage(clock)
         except KeyboardInterrupt:
             status = 130
         finally:
             signal.signal(signal.SIGINT, previous)
+            gc.unfreeze()
+            if gc_enabled:
+                gc.enable()
         return status
+
+    #: Collect garbage only with this much time left before the next slot; a full collection
+    #: (of what the loop itself made: microseconds) every this many cycles, the youngest otherwise.
+    GC_SLACK_NS, GC_FULL_EVERY = 5_000_000, 250
+
+    def _collect_garbage(self, clock: DeadlineClock) -> None:
+        if clock.deadline - time.perf_counter_ns() > self.GC_SLACK_NS:
+            gc.collect(2 if self.log.n % self.GC_FULL_EVERY == 0 else 0)
 
 
 def replay(log_path: str | Path, policy: str | Path | None = None, reference: str | Path | None = None) -> dict:

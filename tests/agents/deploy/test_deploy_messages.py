@@ -9,6 +9,7 @@ When the SDK is importable the comparison also runs live on random messages.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 
 import numpy as np
@@ -100,6 +101,22 @@ def test_cdr_bytes_equal_the_sdk_serialisation():
     assert m.LowState_.deserialize(state).serialize() == state
 
 
+def random_low_state(rng: np.random.Generator) -> m.LowState_:
+    """A LowState_ with random values over every field's range."""
+    msg = m.LowState_(version=rng.integers(0, 2**32, 2).tolist(), mode_pr=int(rng.integers(0, 256)),
+                      mode_machine=int(rng.integers(0, 256)), tick=int(rng.integers(0, 2**32)),
+                      wireless_remote=rng.integers(0, 256, 40).tolist(), reserve=rng.integers(0, 2**32, 4).tolist(),
+                      crc=int(rng.integers(0, 2**32)))
+    msg.imu_state = m.IMUState_(*(rng.normal(size=n).astype(np.float32).tolist() for n in (4, 3, 3, 3)),
+                                temperature=int(rng.integers(-2**15, 2**15)))
+    for i in range(35):
+        msg.motor_state[i] = m.MotorState_(
+            int(rng.integers(0, 256)), *rng.normal(size=4).astype(np.float32).tolist(),
+            rng.integers(-2**15, 2**15, 2).tolist(), float(np.float32(rng.normal())),
+            rng.integers(0, 2**32, 2).tolist(), int(rng.integers(0, 2**32)), rng.integers(0, 2**32, 4).tolist())
+    return msg
+
+
 def test_the_one_call_lowstate_serialiser_writes_cyclonedds_bytes():
     """LowState_.serialize packs the sample in one struct call (it is published at 500 Hz) and
     LowState_.deserialize unpacks it in one (the runner reads one every 20 ms cycle);
@@ -109,17 +126,7 @@ def test_the_one_call_lowstate_serialiser_writes_cyclonedds_bytes():
 
     rng = np.random.default_rng(3)
     for _ in range(20):
-        msg = m.LowState_(version=rng.integers(0, 2**32, 2).tolist(), mode_pr=int(rng.integers(0, 256)),
-                          mode_machine=int(rng.integers(0, 256)), tick=int(rng.integers(0, 2**32)),
-                          wireless_remote=rng.integers(0, 256, 40).tolist(), reserve=rng.integers(0, 2**32, 4).tolist(),
-                          crc=int(rng.integers(0, 2**32)))
-        msg.imu_state = m.IMUState_(*(rng.normal(size=n).astype(np.float32).tolist() for n in (4, 3, 3, 3)),
-                                    temperature=int(rng.integers(-2**15, 2**15)))
-        for i in range(35):
-            msg.motor_state[i] = m.MotorState_(
-                int(rng.integers(0, 256)), *rng.normal(size=4).astype(np.float32).tolist(),
-                rng.integers(-2**15, 2**15, 2).tolist(), float(np.float32(rng.normal())),
-                rng.integers(0, 2**32, 2).tolist(), int(rng.integers(0, 2**32)), rng.integers(0, 2**32, 4).tolist())
+        msg = random_low_state(rng)
         generic = m.LowState_.__idl__.serialize(msg)
         assert msg.serialize() == generic
         assert m.LowState_.deserialize(generic).serialize() == generic  # uint8 arrays come back as bytes
@@ -130,6 +137,74 @@ def test_the_one_call_lowstate_serialiser_writes_cyclonedds_bytes():
         assert msg.serialize(use_version_2=True) == m.LowState_.__idl__.serialize(msg, use_version_2=True)
         assert msg.serialize(endianness=Endianness.Big) == m.LowState_.__idl__.serialize(msg, endianness=Endianness.Big)
     assert msg.serialize(use_version_2=True) != generic
+
+
+def test_the_one_call_lowcmd_serialiser_writes_cyclonedds_bytes():
+    """LowCmd_.serialize and .deserialize in one struct call each (the runner writes one every
+    cycle, the sim robot reads it): CycloneDDS's own bytes and object on random values over every
+    field's range; XCDR2 and big endian go CycloneDDS's way."""
+    from cyclonedds.idl import Endianness
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        motors = [m.MotorCmd_(int(rng.integers(0, 256)), *rng.normal(size=5).astype(np.float32).tolist(),
+                              int(rng.integers(0, 2**32))) for _ in range(35)]
+        msg = m.LowCmd_(mode_pr=int(rng.integers(0, 256)), mode_machine=int(rng.integers(0, 256)), motor_cmd=motors,
+                        reserve=rng.integers(0, 2**32, 4).tolist(), crc=int(rng.integers(0, 2**32)))
+        generic = m.LowCmd_.__idl__.serialize(msg)
+        assert msg.serialize() == generic
+        assert m.LowCmd_.deserialize(generic) == m.LowCmd_.__idl__.deserialize(generic, has_header=True) == msg
+        big = m.LowCmd_.__idl__.serialize(msg, endianness=Endianness.Big)
+        assert m.LowCmd_.deserialize(big) == msg
+        assert msg.serialize(use_version_2=True) == m.LowCmd_.__idl__.serialize(msg, use_version_2=True)
+        assert msg.serialize(endianness=Endianness.Big) == big
+
+
+def test_the_runner_reads_a_lowstate_from_its_bytes_as_from_the_message():
+    """``runner.read_low_state`` (a NumPy view of the wire bytes and the CRC from them, no
+    LowState_ object) equals ``robot_state`` and ``crc_ok`` of the deserialised message on the
+    sim robot's real LowStates (remote keys set, CRC good and corrupted), on random samples
+    over every field's range, and through the fallback for big-endian bytes."""
+    from cyclonedds.idl import Endianness
+
+    from agents.deploy.runner import read_low_state
+    from agents.deploy.sim_robot import SimRobot, SimRobotCfg
+
+    def old_way(data: bytes) -> tuple[m.RobotState, bool]:
+        msg = m.LowState_.__idl__.deserialize(data, has_header=True)  # CycloneDDS's own object
+        return m.robot_state(msg), crc.crc_ok(msg)
+
+    def assert_same(a: tuple[m.RobotState, bool], b: tuple[m.RobotState, bool]) -> None:
+        assert a[1] == b[1]
+        for f in dataclasses.fields(m.RobotState):
+            x, y = getattr(a[0], f.name), getattr(b[0], f.name)
+            assert type(x) is type(y) and np.array_equal(x, y, equal_nan=True), f.name
+            assert getattr(x, "dtype", None) == getattr(y, "dtype", None), f.name
+
+    sim = SimRobot(SimRobotCfg())
+    samples = []
+    for k in range(40):
+        sim.step(None)
+        msg = sim.low_state()
+        msg.wireless_remote = m.remote_bytes(k * 977 % 65536)
+        samples.append(crc.with_crc(msg).serialize())
+    rng = np.random.default_rng(7)
+    for data in list(samples):
+        assert read_low_state(data)[1]
+        for _ in range(3):  # one flipped bit anywhere but the pads
+            bad = bytearray(data)
+            bad[int(rng.integers(4, len(bad)))] ^= 1 << int(rng.integers(0, 8))
+            samples.append(bytes(bad))
+    msg = m.LowState_.deserialize(samples[0])
+    msg.motor_state[3].q = float("nan")
+    samples.append(crc.with_crc(msg).serialize())
+    for _ in range(20):
+        msg = random_low_state(rng)
+        samples += [msg.serialize(), crc.with_crc(msg).serialize()]  # a random CRC, then the right one
+    for data in samples:
+        assert_same(read_low_state(data), old_way(data))
+    big = m.LowState_.__idl__.serialize(m.LowState_.deserialize(samples[0]), endianness=Endianness.Big)
+    assert_same(read_low_state(big), old_way(samples[0]))
 
 
 def test_crc_equals_the_sdk_values():
