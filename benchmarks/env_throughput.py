@@ -8,8 +8,10 @@ random actions; three rates are measured on it, in env-steps/s (one env-step = 4
 steps at 200 Hz):
 
 - ``env``: the full ``step`` (actions → PD → physics → rewards/terminations → resets → obs), on
-  CUDA one replayed graph (``envs/step_graph.py``); ``env eager``: the same step with the MDP's
-  torch work launched from Python between the physics graphs (``sim.cuda_graph: false``);
+  CUDA one replayed graph (``envs/step_graph.py``, switched on here whatever the config says; a
+  failed capture is reported as ``graph_error`` and the step is then eager); ``env eager``: the
+  same step with the MDP's torch work launched from Python between the physics graphs (the
+  default, ``sim.cuda_graph: false``);
 - ``backend``: the env's physics graph alone (physics + contact-force maxima + kinematics refresh);
 - ``raw``: a graph of nothing but ``decimation`` × ``mujoco_warp.step`` on the same Model/Data
   (with the env's contact sensors); ``raw_bare``: the same on the G1 without contact sensors,
@@ -168,6 +170,7 @@ def bench_vector(task_id: str, reference, num_envs: int, device: str, steps: int
     free_before = torch.cuda.mem_get_info()[0] if device.startswith("cuda") else None
     cfg = load_env_config(task_id)
     cfg.final_obs = final_obs
+    cfg.sim.cuda_graph = True  # timed as a graph (off by default until measured) and eagerly, below
     if task_id == BOX_TASK:
         from envs.box import make_box_task as make_task
     else:

@@ -31,8 +31,9 @@ class SimCfg:
     njmax: int = 256
     #: The whole env step as one replayed CUDA graph (warp backend on a CUDA device;
     #: ``envs.step_graph``): the step was host-bound, launching the MDP's ~700 small kernels one
-    #: by one. False: physics graph-captured, the MDP's torch work launched eagerly.
-    cuda_graph: bool = True
+    #: by one. Off until it has run on a GPU (its one GPU try so far failed at the capture, mended
+    #: since but not re-run): physics graph-captured, the MDP's torch work launched eagerly.
+    cuda_graph: bool = False
     #: Bodies with a contact-force sensor: every G1 body that has collision geometry.
     contact_bodies: tuple[str, ...] = (
         "pelvis", "left_hip_roll_link", "left_hip_yaw_link", "left_knee_link", "left_ankle_roll_link",
