@@ -183,3 +183,30 @@ def test_a_finger_weight_turns_the_fingers_down_the_faces():
     down_off, down_on = -fingers(off)[..., 2], -fingers(on)[..., 2]
     assert down_on.min() > 0.9  # within ~25° of straight down on every held frame
     assert down_on.mean() > down_off.mean() + 0.1
+
+
+def test_a_kept_out_capsule_across_a_box_edge_is_seen_inside_between_its_ends():
+    # each kept-out capsule against a 1-cm thin box whose face passes half a radius from the
+    # capsule's middle: both end balls are outside it, so only the balls between them see the overlap
+    capsules: dict[tuple[str, float], list[np.ndarray]] = {}
+    for body, geom, x, radius in grasp._kept_points():
+        if body in grasp.KEPT_OUT_LINKS and radius > 0:
+            capsules.setdefault((geom, radius), []).append(x)
+    tested = []
+    for (geom, radius), xs in capsules.items():
+        if len(xs) < 2:
+            continue  # a sphere
+        a, b = xs[0], xs[1]  # the ends come first (collision_points' order)
+        half = np.array([0.005, 0.1, 0.1])  # box axes: along the capsule, across it, the third
+        if np.linalg.norm(b - a) / 2 - half[0] < 0.9 * radius:
+            continue  # too short for its ends to miss the box (the torso's)
+        axis = (b - a) / np.linalg.norm(b - a)
+        side = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+        side /= np.linalg.norm(side)
+        rot = np.stack([axis, side, np.cross(axis, side)], axis=1)
+        centre = (a + b) / 2 + side * (0.5 * radius + half[1])
+        depth = radius - box_signed_distance((np.array(xs) - centre) @ rot, half)[0]
+        assert depth[:2].max() < 0.0, f"{geom}: its ends already overlap the test box"
+        assert depth.max() >= 0.4 * radius, f"{geom}: the balls miss the overlap at its middle"
+        tested.append(geom)
+    assert {"left_shoulder_yaw_collision", "right_elbow_yaw_collision"} <= set(tested)
