@@ -9,7 +9,9 @@ box by up to 45° about the squeeze axis (docs/results/box.md, "No lottery"), an
 turns between two palms is one the simulated hands cannot carry. The hold frames are found on
 the demonstration alone (the person's hands and the object), so they do not depend on the probe
 seed, and get ``hold_rot_weight`` (and ``hold_pos_weight``) instead, blended in and out with a
-smoothstep over ``hold_ramp_s``.
+smoothstep over ``hold_ramp_s``. Only box-like objects get them (``hold_boxes_only``): the shape
+the grasp pass squeezes; a chair held to its demonstrated turn drifts from the person's grip,
+which the G1's shorter arms cannot make (docs/results/box.md, "No lottery").
 """
 
 from __future__ import annotations
@@ -52,6 +54,14 @@ def object_style_weights(blend: np.ndarray, cfg: StyleConfig) -> np.ndarray:
     base = np.array([cfg.object_pos_weight, cfg.object_rot_weight])
     held = np.maximum(base, [cfg.hold_pos_weight, cfg.hold_rot_weight])
     return base + blend[..., None] * (held - base)
+
+
+def is_box_like(mesh) -> bool:
+    """Whether an object mesh (``TriMesh``: vertices, faces) is one the box environment collides
+    as a box and the grasp pass squeezes (``otr_gym.object_box``)."""
+    from otr_gym.object_box import BoxFitCfg, fit_box
+
+    return bool(fit_box(np.asarray(mesh.vertices), np.asarray(mesh.faces)).is_box(BoxFitCfg()))
 
 
 def hand_gaps(demo, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float, track, band: float) -> np.ndarray:

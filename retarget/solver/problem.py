@@ -464,17 +464,20 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
 def object_hold_weights(demo: Demonstration, problem: Problem, scale: float, band_m: float) -> np.ndarray | None:
     """(T, O, 2) per-frame (λ_o,pos, λ_o,rot) of the free objects (``retarget.solver.holds``);
     None when there is no free object or the hold weights are no stronger than the base ones."""
-    from retarget.solver.holds import hand_gaps, hold_blend, hold_frames, object_style_weights
+    from retarget.solver.holds import hand_gaps, hold_blend, hold_frames, is_box_like, object_style_weights
 
     cfg = problem.style_cfg
     if not problem.objects or (cfg.hold_pos_weight <= cfg.object_pos_weight
                                and cfg.hold_rot_weight <= cfg.object_rot_weight):
         return None
     ramp = int(round(cfg.hold_ramp_s * problem.fps))
-    blend = np.stack([hold_blend(hold_frames(hand_gaps(demo, problem.part_pos_w, problem.part_rot_w, scale,
-                                                       problem.channels[o.channel], band_m),
-                                             problem.channels[o.channel].pos_w[:, 2], cfg), ramp)
-                      for o in problem.objects], axis=1)
+    blend = np.zeros((problem.num_frames, len(problem.objects)))
+    for i, o in enumerate(problem.objects):
+        track = problem.channels[o.channel]
+        if cfg.hold_boxes_only and not is_box_like(track.channel.mesh):
+            continue
+        gaps = hand_gaps(demo, problem.part_pos_w, problem.part_rot_w, scale, track, band_m)
+        blend[:, i] = hold_blend(hold_frames(gaps, track.pos_w[:, 2], cfg), ramp)
     return object_style_weights(blend, cfg)
 
 

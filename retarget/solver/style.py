@@ -70,6 +70,9 @@ class StyleConfig:
     #: not on the probe seed (docs/results/box.md, "No lottery").
     hold_pos_weight: float = 300.0
     hold_rot_weight: float = 1.0
+    #: ... on box-like objects only (``otr_gym.object_box``: those the grasp pass squeezes and the
+    #: box environment collides as a box); other shapes keep the base weights in holds too.
+    hold_boxes_only: bool = True
     hold_reach_m: float = 0.05
     hold_lift_m: float = 0.02
     hold_ramp_s: float = 0.3

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from retarget.solver.holds import hold_blend, hold_frames, object_style_weights
+from retarget.solver.holds import hold_blend, hold_frames, is_box_like, object_style_weights
 from retarget.solver.problem import build_problem, object_hold_weights, resample_demonstration
 from retarget.solver.style import StyleConfig
 
@@ -34,6 +34,18 @@ def test_hold_blend_is_one_on_holds_and_ramps_to_zero_over_the_ramp():
 def test_a_hold_weight_below_the_base_weight_keeps_the_base():
     w = object_style_weights(np.array([[0.0], [1.0]]), StyleConfig(hold_pos_weight=10.0, hold_rot_weight=50.0))
     np.testing.assert_allclose(w[:, 0], [[300.0, 1.0], [300.0, 50.0]])
+
+
+def test_hold_weights_go_to_box_like_objects_only():
+    import trimesh
+
+    assert is_box_like(trimesh.creation.box(extents=[0.3, 0.4, 0.5]))
+    chair = trimesh.util.concatenate([trimesh.creation.box(extents=[0.45, 0.45, 0.05]),  # a seat on legs
+                                      *[trimesh.creation.box(extents=[0.04, 0.04, 0.45],
+                                                             transform=trimesh.transformations.translation_matrix(
+                                                                 [0.2 * sx, 0.2 * sy, -0.25]))
+                                        for sx in (-1, 1) for sy in (-1, 1)]])
+    assert not is_box_like(chair)
 
 
 @pytest.fixture(scope="module")
