@@ -114,6 +114,8 @@ class GraspCfg:
     keep_grip_fraction: float = 0.5
     squeeze_m: float = 0.008  # depth of the hands' collision geoms inside the box (m)
     clearance_m: float = 0.005  # other links' collision geoms stay this far outside (m)
+    #: ... or as far as the per-frame solution keeps them, up to this (m; 0: clearance_m only)
+    far_clearance_m: float = 0.0
     hand_weight: float = 1e4  # per m² of palm point off its target
     #: The forearms' surface points (``FOREARM_LINKS``' visual meshes) within ``keep_m`` of the
     #: box in the per-frame solution keep their distance to it (per m² of change): a forearm that
@@ -404,6 +406,7 @@ def _solve_frame(m, data, q: np.ndarray, q_bar: np.ndarray, previous, centre: np
     n = cols.size
     half = box.half_extents
     keep_d, keep = _kept_distances(m, data, q_bar, centre, rot, box, cfg)
+    clearance = _clearances(data, centre, rot, box, cfg)  # ``data`` still posed at q̄
     # what the iterations read but do not move: the palms' goals (between the per-frame palm, read
     # off ``data`` still posed at q̄, and the face target) and the frame before's correction
     goals, normals = [], []
@@ -454,7 +457,7 @@ def _solve_frame(m, data, q: np.ndarray, q_bar: np.ndarray, previous, centre: np
             shift = posture - before
             h += cfg.smooth_weight * np.eye(n)
             g += cfg.smooth_weight * shift
-        c_rows, lower, depths = _box_rows(data, joint_jac, centre, rot, box, hold, depth, cfg)
+        c_rows, lower, depths = _box_rows(data, joint_jac, centre, rot, box, hold, depth, cfg, clearance)
         joints = q[7:][cols - 6]
         step_lo = np.maximum(robot.JOINT_LOWER[cols - 6] - joints, -cfg.step_rad)
         step_hi = np.minimum(robot.JOINT_UPPER[cols - 6] - joints, cfg.step_rad)
@@ -534,8 +537,18 @@ def _kept_distances(m, data, q_bar: np.ndarray, centre: np.ndarray, rot: np.ndar
     return np.maximum(d[near], 0.0), near
 
 
+def _clearances(data, centre: np.ndarray, rot: np.ndarray, box: BoxShape, cfg: GraspCfg) -> np.ndarray:
+    """(P,) m: how far outside the box each kept-out collision point's ball stays: ``clearance_m``,
+    or its distance in the per-frame solution (``data`` posed there) up to ``far_clearance_m``."""
+    mdl = _model()
+    pos = _posed(data, mdl.point_slot, mdl.point_local)
+    dist = box_signed_distance((pos - centre) @ rot, box.half_extents)[0] - mdl.radius
+    return np.maximum(cfg.clearance_m, np.minimum(cfg.far_clearance_m, dist))
+
+
 def _box_rows(data, joint_jac: np.ndarray | None, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
-              hold: _Hold, depth: float, cfg: GraspCfg) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              hold: _Hold, depth: float, cfg: GraspCfg,
+              clearance: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(C (R, n), lower (R,), [deepest hand geom, deepest other geom] (m, ≥ 0)): linearised rows
     C δ ≥ lower at the configuration ``data`` is posed at (``joint_jac``: ``_joint_jacobians``
     there; None: the depths alone). A hand's geom points reach at most ``depth`` past the plane
@@ -557,5 +570,6 @@ def _box_rows(data, joint_jac: np.ndarray | None, centre: np.ndarray, rot: np.nd
         return np.zeros((0, mdl.moved.size)), np.zeros(0), deepest
     rows = np.flatnonzero(is_hand | (dist < cfg.near_m))  # in point order, as the QP always took them
     normal = np.where(is_hand[rows, None], side[rows, None] * rot[:, hold.axis], grad_b[rows] @ rot.T)
-    gap = np.where(is_hand[rows], depth - past[rows], dist[rows] - cfg.clearance_m)
+    clear = np.full(len(dist), cfg.clearance_m) if clearance is None else clearance
+    gap = np.where(is_hand[rows], depth - past[rows], dist[rows] - clear[rows])
     return _normal_rows(joint_jac[mdl.point_slot[rows]], pos[rows], normal), -gap, deepest

@@ -210,3 +210,45 @@ def test_a_kept_out_capsule_across_a_box_edge_is_seen_inside_between_its_ends():
         assert depth.max() >= 0.4 * radius, f"{geom}: the balls miss the overlap at its middle"
         tested.append(geom)
     assert {"left_shoulder_yaw_collision", "right_elbow_yaw_collision"} <= set(tested)
+
+
+def _other_gaps(ref: Reference, box_centre_w: np.ndarray) -> np.ndarray:
+    """(T, P) each kept-out collision point's ball distance outside the box (m; hands left out)."""
+    mdl = grasp._model()
+    data = mdl.pin_model.createData()
+    q = robot.qpos_mujoco_to_pinocchio(ref.qpos())
+    others = mdl.hand < 0
+    out = np.empty((len(q), int(others.sum())))
+    for t in range(len(q)):
+        pin.framesForwardKinematics(mdl.pin_model, data, q[t])
+        pos = np.array([data.oMf[f].translation for f, _, _ in mdl.points])
+        out[t] = (box_signed_distance(pos - box_centre_w[t], HALF)[0] - mdl.radius)[others]
+    return out
+
+
+def test_a_far_clearance_keeps_links_as_far_off_the_box_as_the_per_frame_solution_did():
+    """``far_clearance_m``: a torso, shoulder or elbow the per-frame solution keeps off the box
+    stays off it by that distance up to ``far_clearance_m`` (the contact evaluation's threshold:
+    a shoulder the regrip brings within 2 cm of the box reads as a contact the person never made)."""
+    ref = _held(np.array([0.30, 0.0, 1.014 + HALF[2] + 0.01]))
+    centre = ref.objects[0].pos_w
+    held = slice(12, FRAMES - 1)
+    before = _other_gaps(ref, centre)[held]
+    wanted = np.minimum(0.025, before)
+    assert (before > 0.02).any()  # some links start farther than the plain 5-mm clearance keeps them
+    far, _ = grasp_boxes(ref, GraspCfg(finger_weight=100.0, far_clearance_m=0.025))
+    assert (_other_gaps(far, centre)[held] >= wanted - 1e-3).all()
+
+
+def test_far_clearance_is_the_per_frame_gap_between_clearance_m_and_far_clearance_m():
+    mdl = grasp._model()
+    data = mdl.pin_model.createData()
+    q = robot.qpos_mujoco_to_pinocchio(_arms_forward()[None])[0]
+    pin.framesForwardKinematics(mdl.pin_model, data, q)
+    centre, rot = np.array([0.35, 0.0, 1.0]), np.eye(3)
+    box = grasp.BoxShape(half_extents=HALF, pos=np.zeros(3), quat_wxyz=np.array([1.0, 0, 0, 0]))
+    pos = np.array([data.oMf[f].translation for f, _, _ in mdl.points])
+    gap = box_signed_distance(pos - centre, HALF)[0] - mdl.radius
+    clear = grasp._clearances(data, centre, rot, box, GraspCfg(far_clearance_m=0.025))
+    np.testing.assert_allclose(clear, np.clip(gap, 0.005, 0.025))
+    np.testing.assert_allclose(grasp._clearances(data, centre, rot, box, GraspCfg()), 0.005)
