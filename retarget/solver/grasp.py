@@ -45,12 +45,13 @@ object's pose stay the per-frame solution's (the interaction with the ground and
 path are kept). Units: metres, radians.
 
 On by default (``grasp.enabled``). On OMOMO ``sub3_largebox_003`` (docs/results/box.md, "A G1
-grasp") the kinematic playback's box error falls from 10.0 to 2.1 cm, all eight probe seeds
-carry the box in every draw, within 1.1 cm of each other (1.5–2.6 cm, with ``finger_weight``,
-``centre_fraction`` 0.15, ``far_clearance_m`` and ``StyleConfig.hold_rot_weight``: docs/results/box.md,
-"No lottery" and its second session), the wrists are no longer over their effort, and the contact
-figures on Unitree's meshes hold (object P / J 91 / 89 %, 0.0 mm into the scan; ground J 95 %, the
-person's fingers under the box touch the floor, the G1's hands on its faces do not).
+grasp") the kinematic playback's box error falls from 10.0 to 2.4 cm (1.6 before the kept-out
+capsules were constrained along their length), all eight probe seeds carry the box in every draw
+(means 2.2–7.0 cm: the spread is not yet the 1.5 cm the issue asks; why, ``finger_weight`` and
+the hold weights: docs/results/box.md, "No lottery" and its second session), the
+wrists are no longer over their effort, and the contact figures on Unitree's meshes hold (object
+P / J 93 / 90 %, 0.0 mm into the scan; ground J 95 %, the person's fingers under the box touch
+the floor, the G1's hands on its faces do not).
 """
 
 from __future__ import annotations
@@ -106,7 +107,7 @@ class GraspCfg:
     release_m: float = 0.03
     #: The grip point on each face: the person's, clipped to this fraction of the face's
     #: half-extents about its centre.
-    centre_fraction: float = 0.15
+    centre_fraction: float = 0.25
     #: A hold whose per-frame hands already squeeze the two faces (their collision geoms past the
     #: face planes by 0 to 2 × ``squeeze_m``, median over the hold) about a point within this
     #: fraction of the half-extents is left as it is: the person's grip, which the G1 can make.
@@ -114,7 +115,7 @@ class GraspCfg:
     squeeze_m: float = 0.008  # depth of the hands' collision geoms inside the box (m)
     clearance_m: float = 0.005  # other links' collision geoms stay this far outside (m)
     #: ... or as far as the per-frame solution keeps them, up to this (m; 0: clearance_m only)
-    far_clearance_m: float = 0.025
+    far_clearance_m: float = 0.0
     hand_weight: float = 1e4  # per m² of palm point off its target
     #: The forearms' surface points (``FOREARM_LINKS``' visual meshes) within ``keep_m`` of the
     #: box in the per-frame solution keep their distance to it (per m² of change): a forearm that
@@ -125,7 +126,7 @@ class GraspCfg:
     #: per unit² of the hand's finger axis (its link x) off ``finger_b`` (box frame, (up, across)
     #: components within the face: (−1, 0) points the fingers straight down): the hand's turn about
     #: the face normal, otherwise the per-frame solution's (0: none)
-    finger_weight: float = 100.0
+    finger_weight: float = 0.0
     finger_b: tuple[float, float] = (-1.0, 0.0)
     posture_weight: float = 1.0  # per rad² of change from the per-frame solution
     smooth_weight: float = 1e2  # per rad² of the correction's change from the frame before

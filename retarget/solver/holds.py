@@ -9,8 +9,7 @@ box by up to 45° about the squeeze axis (docs/results/box.md, "No lottery"), an
 turns between two palms is one the simulated hands cannot carry. The hold frames are found on
 the demonstration alone (the person's hands and the object), so they do not depend on the probe
 seed, and get ``hold_rot_weight`` (and ``hold_pos_weight``) instead, blended in and out with a
-smoothstep over ``hold_ramp_s`` (default 100 per rad² for the rotation; the position keeps its
-300 per m²). Only box-like objects get them (``hold_boxes_only``): the shape
+smoothstep over ``hold_ramp_s``. Only box-like objects get them (``hold_boxes_only``): the shape
 the grasp pass squeezes; a chair held to its demonstrated turn drifts from the person's grip,
 which the G1's shorter arms cannot make (docs/results/box.md, "No lottery").
 """

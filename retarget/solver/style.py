@@ -67,12 +67,9 @@ class StyleConfig:
     #: ``hold_lift_m`` above its lowest height), the object's pose is held to the demonstration
     #: by these weights instead (per m², per rad²; one below the base weight keeps the base),
     #: blended in and out over ``hold_ramp_s``. The frames depend on the demonstration alone,
-    #: not on the probe seed. λ_o,rot 100 in holds (ours): on OMOMO ``sub3_largebox_003`` the eight
-    #: probe seeds' box paths then stay within 1.1–1.6° (mean) of the demonstration, where the
-    #: probes turned them 12° (mean, 36° max); with the grasp pass's defaults the seeds' playbacks
-    #: lie within 1.1 cm of each other (docs/results/box.md, "No lottery", second session).
+    #: not on the probe seed (docs/results/box.md, "No lottery").
     hold_pos_weight: float = 300.0
-    hold_rot_weight: float = 100.0
+    hold_rot_weight: float = 1.0
     #: ... on box-like objects only (``otr_gym.object_box``: those the grasp pass squeezes and the
     #: box environment collides as a box); other shapes keep the base weights in holds too.
     hold_boxes_only: bool = True

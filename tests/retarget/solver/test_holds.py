@@ -81,7 +81,7 @@ def test_hold_weights_do_not_depend_on_the_probe_seed(carry, problem):
     np.testing.assert_array_equal(other.object_style_w, problem.object_style_w)
 
 
-def test_hold_weights_equal_to_the_base_give_every_frame_the_base_weights(carry, problem):
-    base = replace(problem, style_cfg=StyleConfig(hold_rot_weight=1.0), object_style_w=None)
+def test_base_hold_weights_give_every_frame_the_base_weights(carry, problem):
+    base = replace(problem, style_cfg=StyleConfig(), object_style_w=None)
     assert object_hold_weights(carry, base, 1.0, 0.15) is None
     np.testing.assert_array_equal(base.style_weights_at(10)[1], base.style_weights[1])
