@@ -268,6 +268,9 @@ class Problem:
     #: held by ``com_weight``·‖com(q) − c*_t‖² (per m²); None in the first pass.
     com_target: np.ndarray | None = None
     com_weight: float = 0.0
+    #: (T, O, 2): (λ_o,pos, λ_o,rot) of every free object per frame (``retarget.solver.holds``:
+    #: the hold weights in the person's two-hand holds); None: ``style_cfg``'s on every frame.
+    object_style_w: np.ndarray | None = None
 
     @cached_property
     def num_surface_units(self) -> int:
@@ -293,10 +296,19 @@ class Problem:
 
     @cached_property
     def style_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        """(λ_pos, λ_rot) of every style body (eq. m-esty-o)."""
+        """(λ_pos, λ_rot) of every style body (eq. m-esty-o), the objects' outside holds."""
         cfg, n_links, n_obj = self.style_cfg, len(self.style.links), len(self.objects)
         return (np.r_[np.full(n_links, cfg.pos_weight), np.full(n_obj, cfg.object_pos_weight)],
                 np.r_[np.full(n_links, cfg.rot_weight), np.full(n_obj, cfg.object_rot_weight)])
+
+    def style_weights_at(self, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """(λ_pos, λ_rot) of every style body at frame t: the objects' hold weights in a hold."""
+        pos, rot = self.style_weights
+        if self.object_style_w is None or not self.objects:
+            return pos, rot
+        n_links = len(self.style.links)
+        w = self.object_style_w[t]
+        return np.r_[pos[:n_links], w[:, 0]], np.r_[rot[:n_links], w[:, 1]]
 
     @cached_property
     def guard_reach(self) -> np.ndarray:
@@ -445,7 +457,28 @@ def build_problem(demo: Demonstration, mode: str = "native", *, geometry: Geomet
                       stance_cfg=stance, self_pairs=link_pairs_beyond(kin.parents, 2),
                       self_points=robot_self_points()[0], self_clusters=robot_self_points()[1],
                       contact_units=contact_units(), **unit_surface(demo.surface, scale))
-    return replace(problem, q_init=initial_configuration(problem))
+    return replace(problem, q_init=initial_configuration(problem),
+                   object_style_w=object_hold_weights(demo, problem, scale, geometry.band_m))
+
+
+def object_hold_weights(demo: Demonstration, problem: Problem, scale: float, band_m: float) -> np.ndarray | None:
+    """(T, O, 2) per-frame (λ_o,pos, λ_o,rot) of the free objects (``retarget.solver.holds``);
+    None when there is no free object or the hold weights are no stronger than the base ones."""
+    from retarget.solver.holds import hand_gaps, hold_blend, hold_frames, is_box_like, object_style_weights
+
+    cfg = problem.style_cfg
+    if not problem.objects or (cfg.hold_pos_weight <= cfg.object_pos_weight
+                               and cfg.hold_rot_weight <= cfg.object_rot_weight):
+        return None
+    ramp = int(round(cfg.hold_ramp_s * problem.fps))
+    blend = np.zeros((problem.num_frames, len(problem.objects)))
+    for i, o in enumerate(problem.objects):
+        track = problem.channels[o.channel]
+        if cfg.hold_boxes_only and not is_box_like(track.channel.mesh):
+            continue
+        gaps = hand_gaps(demo, problem.part_pos_w, problem.part_rot_w, scale, track, band_m)
+        blend[:, i] = hold_blend(hold_frames(gaps, track.pos_w[:, 2], cfg), ramp)
+    return object_style_weights(blend, cfg)
 
 
 def unit_surface(surface: HumanSurface, scale: float) -> dict[str, np.ndarray | ProbeSet]:

@@ -572,7 +572,7 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     cost.append(stance_rows(targets.stance, fr, problem.stance_cfg.weight))
     # E_sty,r and E_sty,o in one batch: the tracked links, then the free objects
     links = problem.style.links
-    pos_weight, rot_weight = problem.style_weights
+    pos_weight, rot_weight = problem.style_weights_at(targets.t)
     cost.append(pose_rows(np.concatenate([fr.pos[links], state.obj_pos]),
                           np.concatenate([fr.rot[links], state.obj_rot]),
                           targets.style_pos, targets.style_rot, problem.style_bodies, pos_weight, rot_weight))

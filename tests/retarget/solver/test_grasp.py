@@ -183,3 +183,72 @@ def test_a_finger_weight_turns_the_fingers_down_the_faces():
     down_off, down_on = -fingers(off)[..., 2], -fingers(on)[..., 2]
     assert down_on.min() > 0.9  # within ~25° of straight down on every held frame
     assert down_on.mean() > down_off.mean() + 0.1
+
+
+def test_a_kept_out_capsule_across_a_box_edge_is_seen_inside_between_its_ends():
+    # each kept-out capsule against a 1-cm thin box whose face passes half a radius from the
+    # capsule's middle: both end balls are outside it, so only the balls between them see the overlap
+    capsules: dict[tuple[str, float], list[np.ndarray]] = {}
+    for body, geom, x, radius in grasp._kept_points():
+        if body in grasp.KEPT_OUT_LINKS and radius > 0:
+            capsules.setdefault((geom, radius), []).append(x)
+    tested = []
+    for (geom, radius), xs in capsules.items():
+        if len(xs) < 2:
+            continue  # a sphere
+        a, b = xs[0], xs[1]  # the ends come first (collision_points' order)
+        half = np.array([0.005, 0.1, 0.1])  # box axes: along the capsule, across it, the third
+        if np.linalg.norm(b - a) / 2 - half[0] < 0.9 * radius:
+            continue  # too short for its ends to miss the box (the torso's)
+        axis = (b - a) / np.linalg.norm(b - a)
+        side = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+        side /= np.linalg.norm(side)
+        rot = np.stack([axis, side, np.cross(axis, side)], axis=1)
+        centre = (a + b) / 2 + side * (0.5 * radius + half[1])
+        depth = radius - box_signed_distance((np.array(xs) - centre) @ rot, half)[0]
+        assert depth[:2].max() < 0.0, f"{geom}: its ends already overlap the test box"
+        assert depth.max() >= 0.4 * radius, f"{geom}: the balls miss the overlap at its middle"
+        tested.append(geom)
+    assert {"left_shoulder_yaw_collision", "right_elbow_yaw_collision"} <= set(tested)
+
+
+def _other_gaps(ref: Reference, box_centre_w: np.ndarray) -> np.ndarray:
+    """(T, P) each kept-out collision point's ball distance outside the box (m; hands left out)."""
+    mdl = grasp._model()
+    data = mdl.pin_model.createData()
+    q = robot.qpos_mujoco_to_pinocchio(ref.qpos())
+    others = mdl.hand < 0
+    out = np.empty((len(q), int(others.sum())))
+    for t in range(len(q)):
+        pin.framesForwardKinematics(mdl.pin_model, data, q[t])
+        pos = np.array([data.oMf[f].translation for f, _, _ in mdl.points])
+        out[t] = (box_signed_distance(pos - box_centre_w[t], HALF)[0] - mdl.radius)[others]
+    return out
+
+
+def test_a_far_clearance_keeps_links_as_far_off_the_box_as_the_per_frame_solution_did():
+    """``far_clearance_m``: a torso, shoulder or elbow the per-frame solution keeps off the box
+    stays off it by that distance up to ``far_clearance_m`` (the contact evaluation's threshold:
+    a shoulder the regrip brings within 2 cm of the box reads as a contact the person never made)."""
+    ref = _held(np.array([0.30, 0.0, 1.014 + HALF[2] + 0.01]))
+    centre = ref.objects[0].pos_w
+    held = slice(12, FRAMES - 1)
+    before = _other_gaps(ref, centre)[held]
+    wanted = np.minimum(0.025, before)
+    assert (before > 0.02).any()  # some links start farther than the plain 5-mm clearance keeps them
+    far, _ = grasp_boxes(ref, GraspCfg(finger_weight=100.0, far_clearance_m=0.025))
+    assert (_other_gaps(far, centre)[held] >= wanted - 1e-3).all()
+
+
+def test_far_clearance_is_the_per_frame_gap_between_clearance_m_and_far_clearance_m():
+    mdl = grasp._model()
+    data = mdl.pin_model.createData()
+    q = robot.qpos_mujoco_to_pinocchio(_arms_forward()[None])[0]
+    pin.framesForwardKinematics(mdl.pin_model, data, q)
+    centre, rot = np.array([0.35, 0.0, 1.0]), np.eye(3)
+    box = grasp.BoxShape(half_extents=HALF, pos=np.zeros(3), quat_wxyz=np.array([1.0, 0, 0, 0]))
+    pos = np.array([data.oMf[f].translation for f, _, _ in mdl.points])
+    gap = box_signed_distance(pos - centre, HALF)[0] - mdl.radius
+    clear = grasp._clearances(data, centre, rot, box, GraspCfg(far_clearance_m=0.025))
+    np.testing.assert_allclose(clear, np.clip(gap, 0.005, 0.025))
+    np.testing.assert_allclose(grasp._clearances(data, centre, rot, box, GraspCfg()), 0.005)
