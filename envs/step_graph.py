@@ -93,8 +93,8 @@ class StateSlots:
 
     def pin_rebound(self) -> None:
         """Called inside the capture, after the step: see the class docstring."""
-        rebound = [(s, getattr(s.owner, s.name)) for s in self._before.values()
-                   if getattr(s.owner, s.name) is not s.held]
+        now = [(s, getattr(s.owner, s.name)) for s in self._before.values()]
+        rebound = [(s, new) for s, new in now if new is not s.held]
         host = [f"{type(s.owner).__name__}.{s.name}" for s, new in rebound if isinstance(new, _HOST_TYPES)]
         if host:
             raise RuntimeError(f"the env step changes host state a CUDA graph replay would not: {host}; "

@@ -67,6 +67,7 @@ from otr_gym.flags import true_intervals
 from otr_gym.object_box import BoxFitCfg, BoxShape, fit_box
 from otr_gym.robot_geometry import collision_points, visual_meshes
 from otr_gym.rotations import quat_mul, quat_to_matrix
+from retarget.geometry.channels import farthest_point_order
 
 #: The palm's inner surface centre and inward normal in each ``robot.HANDS`` link frame: the G1
 #: hand's palm collision box (centre (0.076, ±0.006, 0), half-width 0.016 m across) faces −y on
@@ -178,9 +179,10 @@ def _model() -> _Model:
                     (int(body.startswith("right")) if body in HAND_LINKS else -1))
                    for k, (body, geom, x, radius) in enumerate(_kept_points()))
     moved = np.array([6 + robot.JOINT_NAMES.index(j) for j in MOVED_JOINTS])
-    meshes = visual_meshes()
-    keep = tuple(robot.add_point_frame(model, link, x, f"{link}_keep{k}") for link in FOREARM_LINKS
-                 for k, x in enumerate(_spread(meshes[link].vertices, KEEP_POINTS_PER_LINK)))
+    meshes = {link: np.asarray(visual_meshes()[link].vertices) for link in FOREARM_LINKS}
+    # each forearm's points spread over its mesh (farthest-point order from its first vertex)
+    keep = tuple(robot.add_point_frame(model, link, v[i], f"{link}_keep{k}") for link, v in meshes.items()
+                 for k, i in enumerate(farthest_point_order(v, KEEP_POINTS_PER_LINK)))
     frames = [f for f, _, _ in points] + list(keep)
     joints, slot = np.unique([model.frames[f].parentJoint for f in frames], return_inverse=True)
     local = np.array([model.frames[f].placement.translation for f in frames])
@@ -217,16 +219,6 @@ def _kept_points() -> list[tuple[str, str, np.ndarray, float]]:
 #: edge, its surface between two balls reaches past theirs by at most 1 − √(1 − 0.25²) = 3 % of
 #: the radius (1.1 mm on the G1's 35-mm arm capsules).
 CAPSULE_SPACING = 0.5
-
-
-def _spread(points: np.ndarray, count: int) -> np.ndarray:
-    """``count`` of ``points`` (N, 3) spread over them (farthest-point sampling from the first)."""
-    chosen = [0]
-    dist = np.linalg.norm(points - points[0], axis=1)
-    for _ in range(min(count, len(points)) - 1):
-        chosen.append(int(np.argmax(dist)))
-        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[-1]], axis=1))
-    return points[chosen]
 
 
 def box_signed_distance(x_b: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -539,8 +531,11 @@ def _kept_distances(m, data, q_bar: np.ndarray, centre: np.ndarray, rot: np.ndar
 
 def _clearances(data, centre: np.ndarray, rot: np.ndarray, box: BoxShape, cfg: GraspCfg) -> np.ndarray:
     """(P,) m: how far outside the box each kept-out collision point's ball stays: ``clearance_m``,
-    or its distance in the per-frame solution (``data`` posed there) up to ``far_clearance_m``."""
+    or its distance in the per-frame solution (``data`` posed there) up to ``far_clearance_m``
+    (not measured where that cannot exceed ``clearance_m``, the default)."""
     mdl = _model()
+    if cfg.far_clearance_m <= cfg.clearance_m:
+        return np.full(len(mdl.radius), cfg.clearance_m)
     pos = _posed(data, mdl.point_slot, mdl.point_local)
     dist = box_signed_distance((pos - centre) @ rot, box.half_extents)[0] - mdl.radius
     return np.maximum(cfg.clearance_m, np.minimum(cfg.far_clearance_m, dist))
