@@ -1,8 +1,8 @@
 """One demonstration in, one G1 ``Reference`` out: the whole method on a clip.
 
 ``retarget_demonstration(demo, cfg)`` resamples the demonstration, builds the problem (probes,
-distance grids, OT correspondences), solves the SQP frame by frame (a second, ballistic pass
-when the clip leaves the ground) and assembles the reference with its objects, contact
+distance grids, OT correspondences), solves the SQP frame by frame (then a second time with
+the centre of mass smoothed, ``retarget.solver.balance``) and assembles the reference with its objects, contact
 annotations and metadata.
 
 Output rate (our choice): the demonstration is resampled to ``cfg.fps`` (default 50, what the
@@ -24,8 +24,8 @@ from retarget.config import RetargetConfig
 def retarget_demonstration(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     """Retarget one Demonstration to a G1 ``Reference`` (see the module doc for the rate).
 
-    ``progress(t)`` is called after each solved frame (of both passes when ``cfg.flight`` solves
-    the clip twice). The reference carries the free and fixed
+    ``progress(t)`` is called after each solved frame (of both passes when ``cfg.balance`` or
+    ``cfg.flight`` solves the clip twice). The reference carries the free and fixed
     objects' tracks (with meshes), per-link contact annotations against every channel, and
     metadata (mode, scale, weights, source, solver statistics). Wall-clock times are not in
     it (``retarget_timed`` returns them), so the same clip always gives the same file.
@@ -63,7 +63,7 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
         matrix_to_quat,
     )
     from retarget.geometry.kernel_warmup import finish_warmup
-    from retarget.solver.flight import ballistic_problem
+    from retarget.solver.balance import balance_problem
     from retarget.solver.problem import mode_scale, resample_demonstration
     from retarget.solver.sqp import solve_sequence
 
@@ -74,13 +74,14 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     finish_warmup()  # the kernels a first run's command line began compiling beside the grids
     built = time.perf_counter()
     sol = solve_sequence(problem, progress)
-    # a clip that leaves the ground is solved again with its flights thrown (retarget.solver.flight)
-    thrown = ballistic_problem(problem, sol, cfg.flight) if cfg.flight.enabled else None
-    flight = {"passes": 1}
-    if thrown is not None:
-        problem, stats = thrown
+    # solved again with the COM smoothed (retarget.solver.balance) and, with cfg.flight, its
+    # flights thrown (retarget.solver.flight)
+    second = balance_problem(problem, sol, cfg.balance, cfg.flight)
+    passes = {"passes": 1}
+    if second is not None:
+        problem, stats = second
         sol = solve_sequence(problem, progress)
-        flight = {"passes": 2, **stats}
+        passes = {"passes": 2, **stats}
     solved = time.perf_counter()
 
     dt = 1.0 / demo.fps
@@ -110,7 +111,7 @@ def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
             "min_distance_m": float(min(s.min_distance_m for s in sol.stats)),
             "min_self_distance_m": float(min(s.min_self_distance_m for s in sol.stats)),
         },
-        "flight": flight,
+        "passes": passes,
     }
     reference = Reference.from_qpos(sol.qpos, demo.fps, objects=objects, contacts=contacts, metadata=metadata)
     if cfg.trajectory.enabled:  # the paths repaired where they jump (retarget.solver.trajectory)

@@ -15,6 +15,7 @@ import yaml
 
 from otr_gym.config import from_dict, load_yaml_mapping
 from retarget.geometry.channels import GeometryConfig
+from retarget.solver.balance import BalanceConfig
 from retarget.solver.flight import FlightConfig
 from retarget.solver.grasp import GraspCfg
 from retarget.solver.problem import SolverConfig
@@ -47,6 +48,7 @@ class RetargetConfig:
     style: StyleConfig = field(default_factory=StyleConfig)
     solver: SolverConfig = field(default_factory=SolverConfig)
     stance: StanceConfig = field(default_factory=StanceConfig)
+    balance: BalanceConfig = field(default_factory=BalanceConfig)
     flight: FlightConfig = field(default_factory=FlightConfig)
     trajectory: TrajectoryCfg = field(default_factory=TrajectoryCfg)
     grasp: GraspCfg = field(default_factory=GraspCfg)

@@ -17,30 +17,24 @@ whose first solution has a flight:
    (``smooth_weight``) and, on flight frames, the second difference of a throw, g·dt²
    (``ballistic_weight``). The take-off and landing frames stay put, so the flight between
    them is a parabola and the push-off before it spreads over the stance frames that lead in.
-3. **Pass 2** (``ballistic_problem``): every style position target (pelvis, torso, hands,
-   feet, …) moves by the COM's correction c* − c, so the warm start, the pelvis step bound
-   (``SolverConfig.base_step_m``) and the style terms follow the thrown body, and the cost
-   gains ``com_weight``·‖com(q) − c*_t‖² (Pinocchio's COM and its Jacobian on the solver's
-   tangent; ``retarget.solver.qp``). Without the shifted targets the pelvis step bound (8 mm per
-   frame off the pelvis target's path) held the body back and landings came 3 frames late.
+3. **Pass 2** (``retarget.solver.balance.balance_problem``, which also smooths the COM): every
+   style position target (pelvis, torso, hands, feet, …) moves by the COM's correction c* − c,
+   so the warm start, the pelvis step bound (``SolverConfig.base_step_m``) and the style terms
+   follow the thrown body, and the cost gains ``com_weight``·‖com(q) − c*_t‖² (Pinocchio's
+   COM and its Jacobian on the solver's tangent; ``retarget.solver.qp``). Without the shifted
+   targets the pelvis step bound (8 mm per frame off the pelvis target's path) held the body
+   back and landings came 3 frames late.
 
 Frames: world, z up, g = 9.81 m/s² along −z. COM in metres.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
-
-from retarget.geometry.centre_of_mass import com_path
-
-if TYPE_CHECKING:
-    from retarget.solver.problem import Problem
-    from retarget.solver.sqp import Solution
 
 GRAVITY_M_S2 = np.array([0.0, 0.0, -9.81])
 
@@ -117,22 +111,3 @@ def ballistic_com(com: np.ndarray, flight: np.ndarray, fps: float, cfg: FlightCo
                         w_air * np.broadcast_to(GRAVITY_M_S2 * dt * dt, (len(airborne), 3))])
     normal = (A.T @ A).tocsc()
     return np.column_stack([spsolve(normal, A.T @ b[:, k]) for k in range(3)])
-
-
-def ballistic_problem(problem: Problem, solution: Solution, cfg: FlightConfig) -> tuple[Problem, dict] | None:
-    """(the pass-2 ``Problem`` of ``problem`` after its first ``solution`` (see the module doc),
-    statistics: flight frames, largest COM correction); None when the solution never leaves
-    its supports."""
-    from otr_gym import robot
-    from retarget.solver.residuals import FIXED
-
-    supports = [c for c, track in enumerate(problem.channels) if track.body == FIXED]
-    flight = ~supported_frames(solution.contacts, supports, cfg.contact_m)
-    if not flight[1:-1].any():
-        return None
-    com = com_path(problem.kin.model, robot.qpos_mujoco_to_pinocchio(solution.qpos))
-    target = ballistic_com(com, flight, problem.fps, cfg)
-    shift = target - com
-    style = replace(problem.style, pos_w=problem.style.pos_w + shift[:, None, :])
-    stats = {"flight_frames": int(flight.sum()), "com_shift_max_m": float(np.linalg.norm(shift, axis=1).max())}
-    return replace(problem, style=style, com_target=target, com_weight=cfg.com_weight), stats

@@ -264,10 +264,11 @@ class Problem:
     #: evaluation measures it, not only the OT sources' (``targets.unit_gaps``).
     unit_surface: ProbeSet
     unit_of_vertex: np.ndarray
-    #: (T, 3) m, world: the centre-of-mass path of a ballistic second pass (``retarget.solver.flight``),
-    #: held by ``com_weight``·‖com(q) − c*_t‖² (per m²); None in the first pass.
+    #: (T, 3) m, world: the centre-of-mass path of a second pass (``retarget.solver.balance``,
+    #: ``retarget.solver.flight``), held by Σ_k w_k (com(q) − c*_t)_k² with ``com_weight`` w
+    #: (per m²; one weight, or one per world axis x, y, z); None in the first pass.
     com_target: np.ndarray | None = None
-    com_weight: float = 0.0
+    com_weight: float | tuple[float, float, float] = 0.0
     #: (T, O, 2): (λ_o,pos, λ_o,rot) of every free object per frame (``retarget.solver.holds``:
     #: the hold weights in the person's two-hand holds); None: ``style_cfg``'s on every frame.
     object_style_w: np.ndarray | None = None
@@ -280,6 +281,11 @@ class Problem:
     @property
     def num_frames(self) -> int:
         return int(self.part_pos_w.shape[0])
+
+    @cached_property
+    def com_weights(self) -> np.ndarray:
+        """(3,) per m²: ``com_weight`` per world axis."""
+        return np.broadcast_to(np.asarray(self.com_weight, np.float64), (3,)).copy()
 
     @cached_property
     def trust(self) -> np.ndarray:

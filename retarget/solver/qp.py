@@ -160,7 +160,8 @@ def merit(problem: Problem, state: SolverState, lin: Linearisation) -> tuple[flo
     cfg = problem.solver
     energy = float(np.dot(lin.cost.weight, lin.cost.value ** 2))
     if lin.com is not None:
-        energy += problem.com_weight * float(lin.com[0] @ lin.com[0])
+        r = lin.com[0]
+        energy += float(r @ (problem.com_weights * r))
     if state.prev is not None:
         e = problem.kin.difference(state.prev[0], state.q)
         energy += cfg.previous_frame_weight * float(e @ e)
@@ -195,8 +196,9 @@ def assemble_model(problem: Problem, state: SolverState, model: QPModel, timings
         g[:nv] += cfg.previous_frame_weight * e
     if lin.com is not None:  # the ballistic pass's COM term (retarget.solver.flight)
         r, jc = lin.com
-        H[:nv, :nv] += problem.com_weight * (jc.T @ jc)
-        g[:nv] += problem.com_weight * (jc.T @ r)
+        w = problem.com_weights
+        H[:nv, :nv] += jc.T @ (w[:, None] * jc)
+        g[:nv] += jc.T @ (w * r)
     H[np.diag_indices_from(H)] += cfg.damping
     model.jac, model.H, model.g, model.chosen = jac, H, g, chosen
     tm.lap("qp_assembly")
