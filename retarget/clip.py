@@ -1,9 +1,9 @@
 """One demonstration in, one G1 ``Reference`` out: the whole method on a clip.
 
 ``retarget_demonstration(demo, cfg)`` resamples the demonstration, builds the problem (probes,
-distance grids, OT correspondences), solves the SQP frame by frame (then a second time with
-the centre of mass smoothed, ``retarget.solver.balance``) and assembles the reference with its objects, contact
-annotations and metadata.
+distance grids, OT correspondences), solves the SQP frame by frame (a second time where
+``balance`` or ``flight`` asks, ``retarget.solver.balance``) and assembles the reference with its
+objects, contact annotations and metadata.
 
 Output rate (our choice): the demonstration is resampled to ``cfg.fps`` (default 50, what the
 Holosoma / BeyondMimic trackers expect) *before* solving, so every stored frame is a solved,

@@ -21,8 +21,8 @@ The pass (``balance_problem``, run by ``retarget.clip.retarget_timed`` after the
 2. **Pass 2**: every style position target but the legs' moves by the correction c* − c (so the
    warm start and the pelvis step bound follow the smoothed body, while the feet stay where the
    person put them: the body moves over its feet), and the cost gains
-   ``com_weight``·‖com(q) − c*_t‖² on the smoothed axes, as in the ballistic pass. Contacts, stance, collision and
-   object rows are those of the first solve: the pass changes where the body sits over the
+   ``com_weight``·‖com(q) − c*_t‖² on the smoothed axes, as in the ballistic pass. Contacts,
+   stance, collision and object rows are those of the first solve: the pass changes where the body sits over the
    feet, not what touches what.
 
 Frames: world, z up; COM in metres.
@@ -47,8 +47,8 @@ if TYPE_CHECKING:
 
 #: The legs' links (``robot.BODY_NAMES`` indices: hips, knees, ankles), whose style targets the
 #: balance pass leaves where they are.
-LEG_LINKS = np.array([i for i, name in enumerate(robot.BODY_NAMES)
-                      if name.split("_")[1:2] in (["hip"], ["knee"], ["ankle"])])
+LEG_LINKS = np.array([i for i, name in enumerate(robot.BODY_NAMES) if name.startswith(("left_", "right_"))
+                      and name.split("_")[1] in ("hip", "knee", "ankle")])
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,7 @@ def balance_problem(problem: Problem, solution: Solution, balance: BalanceConfig
 
     com = com_path(problem.kin.model, robot.qpos_mujoco_to_pinocchio(solution.qpos))
     target, stats = com, {}
-    axes = np.ones(3)
+    axes, thrown = np.ones(3), False
     if balance.enabled:
         target = balance_target(com, problem.fps, balance)
         if not balance.vertical:
@@ -107,14 +107,13 @@ def balance_problem(problem: Problem, solution: Solution, balance: BalanceConfig
         if airborne[1:-1].any():
             target = ballistic_com(target, airborne, problem.fps, flight)
             stats["flight_frames"] = int(airborne.sum())
-            axes[2] = 1.0  # a throw is vertical
+            axes[2], thrown = 1.0, True  # a throw is vertical
     if not stats:
         return None
     shift = target - com
     stats["com_shift_max_m"] = float(np.linalg.norm(shift, axis=1).max())
-    moved = np.ones(len(problem.style.links))
-    if "flight_frames" not in stats:  # the body moves over its feet; a thrown body takes them along
-        moved[np.isin(problem.style.links, LEG_LINKS)] = 0.0
+    # the body moves over its feet; a thrown body takes them along
+    moved = np.where(np.isin(problem.style.links, LEG_LINKS) & ~thrown, 0.0, 1.0)
     style = replace(problem.style, pos_w=problem.style.pos_w + moved[None, :, None] * shift[:, None, :])
     weight = (balance.com_weight if balance.enabled else flight.com_weight) * axes
     return replace(problem, style=style, com_target=target, com_weight=tuple(weight.tolist())), stats

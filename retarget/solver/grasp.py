@@ -469,7 +469,7 @@ def _solve_frame(m, data, q: np.ndarray, q_bar: np.ndarray, previous, centre: np
         if np.abs(qp.results.x).max() < 1e-5:
             break
     pin.framesForwardKinematics(m, data, q)
-    _, _, depths = _box_rows(data, None, centre, rot, box, hold, depth, cfg)
+    _, _, depths = _box_rows(data, None, centre, rot, box, hold, depth, cfg, cfg.clearance_m)
     return q, depths
 
 
@@ -529,13 +529,13 @@ def _kept_distances(m, data, q_bar: np.ndarray, centre: np.ndarray, rot: np.ndar
     return np.maximum(d[near], 0.0), near
 
 
-def _clearances(data, centre: np.ndarray, rot: np.ndarray, box: BoxShape, cfg: GraspCfg) -> np.ndarray:
-    """(P,) m: how far outside the box each kept-out collision point's ball stays: ``clearance_m``,
-    or its distance in the per-frame solution (``data`` posed there) up to ``far_clearance_m``
-    (not measured where that cannot exceed ``clearance_m``, the default)."""
-    mdl = _model()
+def _clearances(data, centre: np.ndarray, rot: np.ndarray, box: BoxShape, cfg: GraspCfg) -> float | np.ndarray:
+    """m: how far outside the box each kept-out collision point's ball stays (P,): ``clearance_m``,
+    or its distance in the per-frame solution (``data`` posed there) up to ``far_clearance_m``;
+    ``clearance_m`` itself (one for all) where that cannot exceed it, the default."""
     if cfg.far_clearance_m <= cfg.clearance_m:
-        return np.full(len(mdl.radius), cfg.clearance_m)
+        return cfg.clearance_m
+    mdl = _model()
     pos = _posed(data, mdl.point_slot, mdl.point_local)
     dist = box_signed_distance((pos - centre) @ rot, box.half_extents)[0] - mdl.radius
     return np.maximum(cfg.clearance_m, np.minimum(cfg.far_clearance_m, dist))
@@ -543,13 +543,13 @@ def _clearances(data, centre: np.ndarray, rot: np.ndarray, box: BoxShape, cfg: G
 
 def _box_rows(data, joint_jac: np.ndarray | None, centre: np.ndarray, rot: np.ndarray, box: BoxShape,
               hold: _Hold, depth: float, cfg: GraspCfg,
-              clearance: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              clearance: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(C (R, n), lower (R,), [deepest hand geom, deepest other geom] (m, ≥ 0)): linearised rows
     C δ ≥ lower at the configuration ``data`` is posed at (``joint_jac``: ``_joint_jacobians``
     there; None: the depths alone). A hand's geom points reach at most ``depth`` past the plane
     of its face (a half-space: no box corner for the hand to catch on while it moves round the
     edge it came from); the other links' geom points, within ``near_m`` of the box, keep
-    ``clearance_m`` off it."""
+    ``clearance`` off it (m: one for all, or per point, ``_clearances``)."""
     mdl = _model()
     pos = _posed(data, mdl.point_slot, mdl.point_local)
     local = (pos - centre) @ rot
@@ -565,6 +565,5 @@ def _box_rows(data, joint_jac: np.ndarray | None, centre: np.ndarray, rot: np.nd
         return np.zeros((0, mdl.moved.size)), np.zeros(0), deepest
     rows = np.flatnonzero(is_hand | (dist < cfg.near_m))  # in point order, as the QP always took them
     normal = np.where(is_hand[rows, None], side[rows, None] * rot[:, hold.axis], grad_b[rows] @ rot.T)
-    clear = np.full(len(dist), cfg.clearance_m) if clearance is None else clearance
-    gap = np.where(is_hand[rows], depth - past[rows], dist[rows] - clear[rows])
+    gap = np.where(is_hand[rows], depth - past[rows], dist[rows] - np.broadcast_to(clearance, dist.shape)[rows])
     return _normal_rows(joint_jac[mdl.point_slot[rows]], pos[rows], normal), -gap, deepest

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from retarget.solver.style import StyleConfig
+from retarget.solver.targets import surface_distances
 
 #: The human parts whose surface is each hand (``retarget.inputs.human.G1_LINK_PARTS`` of
 #: ``robot.HANDS``: SMPL's wrist part carries the hand).
@@ -69,8 +70,6 @@ def hand_gaps(demo, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float
     demonstration's mesh × ``scale``) to the object of ``track`` (a ``ChannelTrack``; its captured
     surface where it is substituted), capped at ``band`` (m)."""
     names = list(demo.surface.part_names)
-    channel = track.channel if track.substitution is None else track.substitution.demonstrated
-    lo, hi = channel.mesh.bounds
     out = np.empty((part_pos_w.shape[0], len(HAND_PARTS)))
     for k, part in enumerate(HAND_PARTS):
         i = names.index(part)
@@ -78,8 +77,7 @@ def hand_gaps(demo, part_pos_w: np.ndarray, part_rot_w: np.ndarray, scale: float
         x_w = np.einsum("tij,vj->tvi", part_rot_w[:, i], v) + part_pos_w[:, i, None]  # (T, V, 3)
         x_c = np.einsum("tji,tvj->tvi", track.rot_w, x_w - track.pos_w[:, None]).reshape(-1, 3)  # object frame
         d = np.full(len(x_c), band)
-        near = np.flatnonzero(np.all((x_c > lo - band) & (x_c < hi + band), axis=1))
-        if near.size:
-            d[near] = np.minimum(channel.distance(x_c[near])[0], band)
+        near, d_near = surface_distances(track, x_c, band)
+        d[near] = np.minimum(d_near, band)
         out[:, k] = d.reshape(part_pos_w.shape[0], -1).min(axis=1)
     return out

@@ -194,7 +194,7 @@ def assemble_model(problem: Problem, state: SolverState, model: QPModel, timings
         e = problem.kin.difference(state.prev[0], state.q)  # q ⊖ q_{t−1}
         H[:nv, :nv] += cfg.previous_frame_weight * np.eye(nv)
         g[:nv] += cfg.previous_frame_weight * e
-    if lin.com is not None:  # the ballistic pass's COM term (retarget.solver.flight)
+    if lin.com is not None:  # a second pass's COM term (retarget.solver.balance)
         r, jc = lin.com
         w = problem.com_weights
         H[:nv, :nv] += jc.T @ (w[:, None] * jc)

@@ -94,7 +94,16 @@ def unit_gaps(problem: Problem, track: ChannelTrack, surface_w: np.ndarray, rot:
     within 19 mm of the top where its sources stay at 28 mm, so the forearm was held off as
     "not touching" and object recall lost 66 frames."""
     gap = np.full(problem.num_surface_units, band)
-    x_c = to_channel_frame(surface_w, rot, pos)
+    near, d = surface_distances(track, to_channel_frame(surface_w, rot, pos), band)
+    if len(near):
+        np.minimum.at(gap, problem.unit_of_vertex[near], d)
+    return gap
+
+
+def surface_distances(track: ChannelTrack, x_c: np.ndarray, band: float) -> tuple[np.ndarray, np.ndarray]:
+    """(indices of the points ``x_c`` (N, 3, channel frame) within the channel's bounds grown by
+    ``band``, their distances to the channel (m)): the demonstrated surface's distances, so on
+    the captured object where it is substituted. Every other point is farther than ``band``."""
     if track.substitution is not None:
         channel = track.substitution.demonstrated
         lo, hi = channel.mesh.bounds
@@ -102,10 +111,7 @@ def unit_gaps(problem: Problem, track: ChannelTrack, surface_w: np.ndarray, rot:
     else:
         channel = track.channel
         near = np.flatnonzero(near_channel(track, x_c, band))
-    if len(near):
-        d = channel.distance(x_c[near])[0]
-        np.minimum.at(gap, problem.unit_of_vertex[near], d)
-    return gap
+    return near, (channel.distance(x_c[near])[0] if len(near) else np.zeros(0))
 
 
 def frame_targets(problem: Problem, t: int) -> FrameTargets:
