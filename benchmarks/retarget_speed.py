@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         for name, ms in r["profile_ms"].items():
             print(f"    {name:<46} {ms:>7.2f}  {100 * ms / r['mean_ms']:>5.1f} %")
     print("\npaper (unoptimised Python, Threadripper core): 21.5 ms locomotion, 63.8 ms carrying; "
-          "targets here: <= 10 and <= 25 ms")
+          "targets (issue 54): <= 5 and <= 12 ms")
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"cpu": cpu, "results": results}, indent=2))

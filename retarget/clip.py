@@ -45,13 +45,16 @@ class Timing:
         return 1000.0 * self.solve_s / max(self.frames, 1)
 
 def problem_from_config(demo, cfg: RetargetConfig):
-    """``retarget.solver.problem.build_problem`` of ``demo`` (at its own fps) with every setting of ``cfg``."""
+    """``retarget.solver.problem.build_problem`` of ``demo`` (at its own fps) with every setting of
+    ``cfg``, the person's centre of mass as a target where ``cfg.balance`` asks for it."""
+    from retarget.solver.balance import person_com_problem
     from retarget.solver.problem import build_problem
 
-    return build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
-                         solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m,
-                         max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance,
-                         links_together=cfg.links_together)
+    problem = build_problem(demo, cfg.mode, geometry=cfg.geometry, interaction=cfg.interaction, style=cfg.style,
+                            solver=cfg.solver, guard_spacing_m=cfg.guard_spacing_m,
+                            max_probes_per_link=cfg.max_probes_per_link, seed=cfg.seed, stance=cfg.stance,
+                            links_together=cfg.links_together)
+    return person_com_problem(problem, demo, cfg.mode, cfg.balance)
 
 def retarget_timed(demo, cfg: RetargetConfig = RetargetConfig(), progress=None):
     """``retarget_demonstration`` that also returns its ``Timing``."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -29,6 +30,25 @@ class HumanSurface:
         # one batched product per part (22 of them), never a loop over frames or vertices
         return np.concatenate([v @ np.swapaxes(rot[..., k, :, :], -1, -2) + pos[..., k, None, :]
                                for k, v in enumerate(self.vertices)], axis=-2)
+
+    def centre_of_mass(self, part_pos_w: np.ndarray, part_quat_w: np.ndarray) -> np.ndarray:
+        """World centre of mass (…, 3) m for part poses (…, P, 3) / (…, P, 4), parts in order.
+
+        Each part is its surface's convex hull at uniform density: a part mesh cut from the body
+        is open where it meets its neighbours, so its own volume is undefined, and the hulls'
+        overlap at the joints is a few per cent of the mass. The hulls are computed once."""
+        centre, volume = self.part_hull_mass
+        rot = quat_to_matrix(np.asarray(part_quat_w, np.float64))
+        world = np.einsum("...kij,kj->...ki", rot, centre) + np.asarray(part_pos_w, np.float64)
+        return np.einsum("...ki,k->...i", world, volume / volume.sum())
+
+    @cached_property
+    def part_hull_mass(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 3) hull centroids (part frames, m) and (P,) hull volumes (m³) of the parts."""
+        import trimesh
+
+        hulls = [trimesh.convex.convex_hull(v) for v in self.vertices]
+        return np.array([h.center_mass for h in hulls]), np.array([h.volume for h in hulls])
 
     def lowest_z(self, part_pos_w: np.ndarray, part_quat_w: np.ndarray) -> np.ndarray:
         """Height (…,) m of the lowest surface point for part poses (…, P, 3) / (…, P, 4)."""

@@ -25,6 +25,10 @@ The pass (``balance_problem``, run by ``retarget.clip.retarget_timed`` after the
    stance, collision and object rows are those of the first solve: the pass changes where the body sits over the
    feet, not what touches what.
 
+``person_com_problem`` (``balance.person_com_weight``, off by default; on in
+``configs/retarget/executable.yaml``) is the single-solve alternative: the first solve holds the
+G1's horizontal COM on the person's, moved by the G1's own offset from it.
+
 Frames: world, z up; COM in metres.
 """
 
@@ -72,6 +76,40 @@ class BalanceConfig:
     #: five shared clips: on, the box carry's unsupported frames fell further (55 → 29 against
     #: 55 → 40) but the wooden chair's pass 2 came apart (limb jumps 20 → 68, object J 83 → 53 %).
     vertical: bool = False
+    #: Weight (per m², x and y) of the person's centre of mass as the G1's horizontal COM target
+    #: in the first solve (``person_com_problem``); 0 switches it off. The person balanced
+    #: their motion over their feet and the G1's feet stand where theirs did, so the person's
+    #: smooth COM path is one the G1's contacts can carry, with no second solve. 1e4 in
+    #: ``configs/retarget/executable.yaml`` (docs/results/feasibility.md, *Refused steps and the
+    #: person's centre of mass*); off by default: the G1 then keeps its offset from the person's
+    #: COM, and where its shorter arms must lean further than the person to put a box down, its
+    #: hands leave the box (a synthetic placing clip: hand contact on 48 % of the frames).
+    person_com_weight: float = 0.0
+    #: Rate (per frame) at which the G1's offset from the person's COM is followed
+    #: (``Problem.com_offset_rate``; 0: the person's COM itself is the target).
+    person_offset_rate: float = 0.04
+    #: Low-pass the person's COM at ``cutoff_hz`` (zero phase) before it is a target: the
+    #: capture's own jitter (part rotations) is not the person's balance.
+    person_lowpass: bool = True
+
+
+def person_com_problem(problem: Problem, demo, mode: str, cfg: BalanceConfig) -> Problem:
+    """``problem`` whose first solve holds the G1's horizontal COM on the person's (``demo``
+    at the problem's rate, retargeted in ``mode``; the person's COM from
+    ``HumanSurface.centre_of_mass``, × the mode's scale as every demonstrated position);
+    ``problem`` itself when ``person_com_weight`` is 0."""
+    if cfg.person_com_weight == 0.0:
+        return problem
+    if not cfg.person_com_weight > 0.0:
+        raise ValueError(f"balance.person_com_weight must be >= 0, got {cfg.person_com_weight}")
+    if demo.num_frames != problem.num_frames:
+        raise ValueError(f"{demo.name}: {demo.num_frames} frames, the problem has {problem.num_frames}")
+    from retarget.solver.problem import mode_scale
+
+    com = demo.surface.centre_of_mass(demo.part_pos_w, demo.part_quat_w) * mode_scale(demo, mode)
+    target = balance_target(com, problem.fps, cfg) if cfg.person_lowpass else com
+    w = float(cfg.person_com_weight)
+    return replace(problem, com_target=target, com_weight=(w, w, 0.0), com_offset_rate=cfg.person_offset_rate)
 
 
 def balance_target(com: np.ndarray, fps: float, cfg: BalanceConfig) -> np.ndarray:
@@ -116,4 +154,5 @@ def balance_problem(problem: Problem, solution: Solution, balance: BalanceConfig
     moved = np.where(np.isin(problem.style.links, LEG_LINKS) & ~thrown, 0.0, 1.0)
     style = replace(problem.style, pos_w=problem.style.pos_w + moved[None, :, None] * shift[:, None, :])
     weight = (balance.com_weight if balance.enabled else flight.com_weight) * axes
-    return replace(problem, style=style, com_target=target, com_weight=tuple(weight.tolist())), stats
+    return replace(problem, style=style, com_target=target, com_weight=tuple(weight.tolist()),
+                   com_offset_rate=0.0), stats

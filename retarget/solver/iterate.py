@@ -31,6 +31,8 @@ class SolverState:
     stance: StanceTargets | None = None  # planted-foot targets of t − 1 (their anchors)
     recent_frames: list[tuple[bytes, LinkFrames]] = field(default_factory=list)  # ``frames_at``'s last answers
     com_data: pin.Data | None = None  # scratch of the COM term (``retarget.solver.flight``), apart from ``data``
+    #: (3,) m: the G1's COM less the person's, followed slowly (``Problem.com_offset_rate``); None before frame 0
+    com_offset: np.ndarray | None = None
 
 
 @dataclass

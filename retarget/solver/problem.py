@@ -159,6 +159,21 @@ class SolverConfig:
     #: second-order correction of the refusals that a pitched held foot's toe causes. Off: on Bandai
     #: walks it moved the standing shin into the swinging foot (docs/results/feasibility.md).
     replant_trial: bool = False
+    #: Ours: a contact-state row in its state (a foot the person keeps off the floor, clear of
+    #: it) that a step would carry across is priced in that step's QP (``qp.qp_step``). Off, the
+    #: model did not know the cost it would meet and the trust-region test refused the step:
+    #: on Bandai's walk 177 of 222 refusals, 38 of 241 frames that took no step at all, a
+    #: staircase in the joints (docs/results/feasibility.md, *Refused steps*). Off by default
+    #: (on in ``configs/retarget/executable.yaml``): the references change and a synthetic
+    #: box-placing clip cut mid-carry then keeps the hands on the box on 78 % of its frames,
+    #: under its test's 90 % (the seed-0 reference of 53a180a: 95 %).
+    price_contact_state: bool = False
+    #: Ours: a trial step whose deepest pair lies this much deeper than the iterate's (or than
+    #: ε_col) is refused whatever its merit (m): the L1 penalty prices a centimetre inside a
+    #: surface at 1, less than a COM target can gain (the wooden chair: 18 mm into a slat; 2 mm
+    #: also refused steps the chair needed without one: it drifted 29 cm). inf: off (the default;
+    #: 0.003 in ``configs/retarget/executable.yaml``, whose COM target needs it).
+    step_penetration_m: float = float("inf")
     #: Weight of ‖q_t ⊖ q_{t−1}‖² (eq. m-program: 1).
     previous_frame_weight: float = 1.0
     #: Levenberg damping on every variable, only for a well-posed QP (no physical meaning).
@@ -269,6 +284,11 @@ class Problem:
     #: (per m²; one weight, or one per world axis x, y, z); None in the first pass.
     com_target: np.ndarray | None = None
     com_weight: float | tuple[float, float, float] = 0.0
+    #: With a rate r > 0, ``com_target`` is the person's COM and the target of frame t is
+    #: c*_t + o_t, the offset o following the G1's own (o ← o + r (com_t − c*_t − o) after each
+    #: frame, o from frame 0's solution, which has no COM term): the G1 keeps its own posture's
+    #: offset from the person's COM but moves it as the person does (``retarget.solver.balance``).
+    com_offset_rate: float = 0.0
     #: (T, O, 2): (λ_o,pos, λ_o,rot) of every free object per frame (``retarget.solver.holds``:
     #: the hold weights in the person's two-hand holds); None: ``style_cfg``'s on every frame.
     object_style_w: np.ndarray | None = None

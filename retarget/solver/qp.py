@@ -149,6 +149,8 @@ class QPModel:
     g: np.ndarray | None = None
     chosen: np.ndarray | None = None  # constraint rows in the QP
     bounds: tuple[np.ndarray, np.ndarray] | None = None  # ``variable_bounds`` at the iterate, once asked
+    #: the contact-state rows the last step crossed, priced at that step (``qp_step``)
+    hinge_predicted: float = 0.0
 
     @property
     def merit(self) -> float:
@@ -194,7 +196,7 @@ def assemble_model(problem: Problem, state: SolverState, model: QPModel, timings
         e = problem.kin.difference(state.prev[0], state.q)  # q ⊖ q_{t−1}
         H[:nv, :nv] += cfg.previous_frame_weight * np.eye(nv)
         g[:nv] += cfg.previous_frame_weight * e
-    if lin.com is not None:  # a second pass's COM term (retarget.solver.balance)
+    if lin.com is not None:  # the COM term (retarget.solver.balance)
         r, jc = lin.com
         w = problem.com_weights
         H[:nv, :nv] += jc.T @ (w[:, None] * jc)
@@ -205,7 +207,7 @@ def assemble_model(problem: Problem, state: SolverState, model: QPModel, timings
 
 
 def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: QPModel, trust_scale: float,
-            stats: FrameStats) -> np.ndarray:
+            stats: FrameStats, price_hinges: bool = True) -> np.ndarray:
     """The QP step of eq. m-qp at the model's iterate, trust region × ``trust_scale``.
 
     Constraint rows start from ``model.chosen``; after each solve every candidate row is
@@ -219,6 +221,11 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
         model.bounds = variable_bounds(problem, state, targets)
     box_lo, box_hi = step_bounds(problem, model.bounds, trust_scale)
     rows, chosen, jac = model.lin.constraints, model.chosen, model.jac
+    price = price_hinges and cfg.price_contact_state and model.lin.hinge is not None
+    hinge = model.lin.hinge if price else Rows.empty()
+    priced = np.zeros(len(hinge), dtype=bool)
+    H, g = model.H, model.g
+    model.hinge_predicted = 0.0
     for _ in range(4):
         sub = rows_take(rows, np.flatnonzero(chosen))
         # Rows aim at d ≥ 0 (ε_col is the slack for linearisation error); a penetrating pair
@@ -227,18 +234,39 @@ def qp_step(problem: Problem, state: SolverState, targets: FrameTargets, model: 
         C = constraint_matrix(sub, jac)
         tm.lap("qp_assembly")
         failures = state.qp.failures
-        delta = state.qp.solve(model.H, model.g, C, lower, box_lo, box_hi)
+        delta = state.qp.solve(H, g, C, lower, box_lo, box_hi)
         tm.lap("qp_solve")
         if state.qp.failures > failures:
             break  # the rows conflict already: more rows cannot help, the relaxed step stands
+        twist = jac @ delta
         violated = np.empty(len(rows), dtype=bool)
-        _violated_rows(rows.value, rows.phi, rows.body_a, rows.body_b, jac @ delta, chosen, -eps, violated)
+        _violated_rows(rows.value, rows.phi, rows.body_a, rows.body_b, twist, chosen, -eps, violated)
+        # a contact-state row that the step would carry out of its demonstrated state (a foot
+        # lowered into the floor's clearance) costs from there on: without it in the model the
+        # trust-region test refused the step (Bandai walk: 177 of 222 refusals)
+        crossed = np.zeros(len(hinge), dtype=bool)
+        if len(hinge):
+            after = hinge.value + _rates(hinge, twist)
+            crossed = ~priced & (model.lin.hinge_side * after < 0.0)
+            model.hinge_predicted = float(np.sum(hinge.weight * np.minimum(model.lin.hinge_side * after, 0.0) ** 2))
         tm.lap("qp_assembly")
-        if not violated.any():
+        if not (violated.any() or crossed.any()):
             break
         chosen |= violated
+        if crossed.any():
+            priced |= crossed
+            dH, dg = assemble_cost(rows_take(hinge, np.flatnonzero(priced)), jac)
+            H, g = model.H + dH, model.g + dg
     stats.qp_rows.append(int(chosen.sum()))
     return delta
+
+
+def _rates(rows: Rows, twist: np.ndarray) -> np.ndarray:
+    """(k,) φ_A·ν_A + φ_B·ν_B of ``rows`` at the bodies' twists (bodies, 6; FIXED the last, zero)."""
+    fixed = twist.shape[0] - 1
+    a = np.where(rows.body_a == FIXED, fixed, rows.body_a)
+    b = np.where(rows.body_b == FIXED, fixed, rows.body_b)
+    return np.einsum("kc,kc->k", rows.phi[:, :6], twist[a]) + np.einsum("kc,kc->k", rows.phi[:, 6:], twist[b])
 
 
 @numba.njit(cache=True)

@@ -66,6 +66,10 @@ class Linearisation:
     #: com(q) − c*_t (3,) m and its Jacobian (3, nv) when the frame has a COM target
     #: (``retarget.solver.flight``), else None
     com: tuple[np.ndarray, np.ndarray] | None = None
+    #: contact-state rows in their demonstrated state (no cost here) and the side each keeps
+    #: (+1: r ≥ 0, −1: r ≤ 0): ``qp.qp_step`` prices the ones a step would cross
+    hinge: Rows | None = None
+    hinge_side: np.ndarray | None = None
 
     @cached_property
     def initial(self) -> np.ndarray:
@@ -406,11 +410,14 @@ def _select_contact_rows(problem: Problem, targets: FrameTargets, pairs: list[_R
 
 
 def _contact_state_rows(problem: Problem, fr: LinkFrames, pairs: list[_RobotPairs],
-                        selection: ContactSelection) -> list[Rows]:
+                        selection: ContactSelection) -> tuple[list[Rows], Rows, np.ndarray]:
     """Rows r = d − target of the selected probes (those still in the band) whose unit is out of
     its demonstrated state at this iterate: too far where it is to touch, too close where it is
-    to stay clear."""
-    out = []
+    to stay clear. With ``solver.price_contact_state``, also the selected probes in their state
+    (the hinge candidates, with the side they keep: +1 for r ≥ 0, a unit to stay clear; −1 for
+    r ≤ 0, a unit to touch): each costs nothing here, and ``qp.qp_step`` adds it to the QP's cost
+    where a step would cross it."""
+    out, keep, side = [], [], []
     for p in pairs:
         mine = np.flatnonzero(selection.channel == p.channel)
         if len(mine) == 0 or len(p.probes) == 0:
@@ -421,20 +428,29 @@ def _contact_state_rows(problem: Problem, fr: LinkFrames, pairs: list[_RobotPair
         # a row where the unit is not in its demonstrated state at this iterate
         d = p.query.d[k]
         wrong = np.where(selection.touching[mine], d > selection.target[mine], d < selection.target[mine])
-        k, mine = k[wrong], mine[wrong]
-        if len(k) == 0:
-            continue
-        link = problem.robot.body[p.probes[k]]
-        track = problem.channels[p.channel]
-        rows = signed_distance_rows(p.query.d[k] - selection.target[mine], p.query.grad_d[k], p.x_w[k],
-                                    fr.pos.take(link, axis=0), link, track.body, p.rot_c, p.pos_c)
-        # a far-field pull (beyond the band) moves the robot's part in, never the object out to
-        # it: dragged by the pelvis the person leans on, the free chair drifted 5.6 cm off its path
-        far = ~p.query.in_band[k]
-        phi = rows.phi.copy()
-        phi[far, 6:] = 0.0
-        out.append(Rows(rows.value, selection.weight[mine], phi, rows.body_a, np.where(far, FIXED, rows.body_b)))
-    return out
+        # (each set's rows built apart: a batch's arithmetic depends on its length in the last
+        # bits, and the solve carries such bits into centimetres over a clip)
+        if wrong.any():
+            out.append(_state_rows(problem, fr, p, selection, k[wrong], mine[wrong]))
+        if problem.solver.price_contact_state and not wrong.all():
+            keep.append(_state_rows(problem, fr, p, selection, k[~wrong], mine[~wrong]))
+            side.append(np.where(selection.touching[mine[~wrong]], -1.0, 1.0))
+    return out, Rows.concat(keep), (np.concatenate(side) if side else np.zeros(0))
+
+
+def _state_rows(problem: Problem, fr: LinkFrames, p: _RobotPairs, selection: ContactSelection, k: np.ndarray,
+                mine: np.ndarray) -> Rows:
+    """The contact-state rows d − target of the pair set's probes ``k`` (selection entries ``mine``)."""
+    link = problem.robot.body[p.probes[k]]
+    track = problem.channels[p.channel]
+    rows = signed_distance_rows(p.query.d[k] - selection.target[mine], p.query.grad_d[k], p.x_w[k],
+                                fr.pos.take(link, axis=0), link, track.body, p.rot_c, p.pos_c)
+    # a far-field pull (beyond the band) moves the robot's part in, never the object out to
+    # it: dragged by the pelvis the person leans on, the free chair drifted 5.6 cm off its path
+    far = ~p.query.in_band[k]
+    phi = rows.phi.copy()
+    phi[far, 6:] = 0.0
+    return Rows(rows.value, selection.weight[mine], phi, rows.body_a, np.where(far, FIXED, rows.body_b))
 
 
 def _object_rows(problem: Problem, state: SolverState, targets: FrameTargets, i: int, count: int | None,
@@ -519,7 +535,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     cost, total_pairs, link_counts = _robot_cost(problem, fr, robot_pairs, counts)
     if contact is None:
         contact = _select_contact_rows(problem, targets, robot_pairs)
-    cost += _contact_state_rows(problem, fr, robot_pairs, contact)
+    wrong, hinge, hinge_side = _contact_state_rows(problem, fr, robot_pairs, contact)
+    cost += wrong
     tm.lap("robot_rows")
 
     object_counts = []
@@ -584,7 +601,8 @@ def linearise(problem: Problem, state: SolverState, targets: FrameTargets, timin
     tm.lap("style_rows")
     return Linearisation(Rows.concat(cost), constraints, surface_channel, margin, fr,
                          total_pairs, min_dist, min_self,
-                         np.concatenate([link_counts, np.asarray(object_counts, np.intp)]), contact, com)
+                         np.concatenate([link_counts, np.asarray(object_counts, np.intp)]), contact, com,
+                         hinge, hinge_side)
 
 
 #: The root link (pelvis): its origin is the floating base's.

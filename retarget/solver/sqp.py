@@ -65,6 +65,8 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
                       stance=stance_targets(problem.stance, t, problem.feet, problem.soles,
                                             problem.surface_margin[problem.feet], previous, problem.stance_cfg,
                                             problem.turns, problem.sweep, state.stance))
+    if problem.com_offset_rate > 0.0:  # the person's COM moved by the G1's own offset (none yet on frame 0)
+        targets = replace(targets, com=None if state.com_offset is None else targets.com + state.com_offset)
     tm.lap("demo_triples")
     cfg = problem.solver
     eps = cfg.penetration_tolerance_m
@@ -80,7 +82,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         stats.iterations += 1
         step = float(np.abs(delta).max())
         # predicted merit decrease: the model's decrease of E, and the violations the QP removes
-        predicted = -(2.0 * model.g @ delta + delta @ model.H @ delta) + model.penalty
+        predicted = -(2.0 * model.g @ delta + delta @ model.H @ delta) + model.penalty - model.hinge_predicted
         if step < cfg.step_tolerance or predicted < cfg.model_tolerance * model.merit:
             break
         saved = (state.q.copy(), state.obj_pos.copy(), state.obj_rot.copy())
@@ -90,7 +92,11 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         trial = linearise(problem, state, targets, stats.timings, counts=counts, contact=contact)
         trial_model = model_at(problem, state, trial, stats.timings, assemble=False)
         gain = model.merit - trial_model.merit
-        if gain > 0.1 * max(predicted, 0.0) and gain > 0.0:
+        # a step that the linearised rows allowed but that lands deeper in a surface than the
+        # iterate was (a thin part the grid cannot resolve, a witness jumping across an edge)
+        # is the linearisation's failure, not progress, whatever the cost gains
+        deeper = trial.min_distance < min(model.lin.min_distance, -eps) - cfg.step_penetration_m
+        if gain > 0.1 * max(predicted, 0.0) and gain > 0.0 and not deeper:
             model = trial_model
             if gain > 0.75 * predicted:
                 scale = min(1.0, 2.0 * scale)
@@ -114,7 +120,7 @@ def solve_frame(problem: Problem, state: SolverState, t: int) -> FrameStats:
         chosen[lin.initial] = True
         chosen |= lin.constraints.value < eps
         restore = QPModel(lin, 0.0, 0.0, jac, np.eye(n), np.zeros(n), chosen)
-        delta = qp_step(problem, state, targets, restore, cfg.feasibility_trust_scale ** k, stats)
+        delta = qp_step(problem, state, targets, restore, cfg.feasibility_trust_scale ** k, stats, price_hinges=False)
         stats.iterations += 1
         retract(problem, state, delta)
         lin = linearise(problem, state, targets, stats.timings, counts=counts, contact=contact)
@@ -194,6 +200,17 @@ def _self_clearance(problem: Problem, state: SolverState, q: np.ndarray) -> floa
     return float(rows.value.min()) if len(rows) else np.inf
 
 
+def follow_com_offset(problem: Problem, state: SolverState, t: int) -> None:
+    """After frame t: the offset of the G1's COM from the person's (``Problem.com_offset_rate``)."""
+    if state.com_data is None:
+        state.com_data = problem.kin.new_data()
+    offset = pin.centerOfMass(problem.kin.model, state.com_data, state.q) - problem.com_target[t]
+    if state.com_offset is None:
+        state.com_offset = offset.copy()
+    else:
+        state.com_offset += problem.com_offset_rate * (offset - state.com_offset)
+
+
 def solve_sequence(problem: Problem, progress=None) -> Solution:
     """Solve every frame in order, each warm-started from the previous solution.
 
@@ -231,6 +248,8 @@ def _solve_sequence(problem: Problem, progress) -> Solution:
             _seed_if_clear(problem, state, seed_arms(state.q, state.prev[0], problem.style.rot_w[t], problem.fps,
                                                      free=arms_free))
         stats.append(solve_frame(problem, state, t))
+        if problem.com_offset_rate > 0.0:
+            follow_com_offset(problem, state, t)
         fc = frame_contacts(problem, state, t)
         held = np.array([fc.distance[:, o.channel].min() < problem.solver.hold_distance_m for o in problem.objects],
                         dtype=bool)

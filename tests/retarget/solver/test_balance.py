@@ -95,3 +95,45 @@ def test_pass_two_moves_the_body_over_the_feet():
     assert np.array_equal(moved[:, legs], np.zeros_like(moved[:, legs]))
     np.testing.assert_allclose(moved[:, ~legs], np.broadcast_to(shift[:, None, :], moved[:, ~legs].shape), atol=1e-12)
     assert balance_problem(problem, first, BalanceConfig(enabled=False), FlightConfig()) is None
+
+
+def test_the_person_com_weighs_each_part_by_its_volume():
+    """Two parts, a 0.2 m cube and a 0.1 m cube (8:1 in volume), posed apart and turned: the
+    COM lies 1/9 of the way from the big one's centre to the small one's."""
+    import trimesh
+
+    from otr_gym.rotations import matrix_to_quat, so3_exp
+    from retarget.inputs.human_surface import HumanSurface
+
+    big, small = trimesh.creation.box((0.2, 0.2, 0.2)), trimesh.creation.box((0.1, 0.1, 0.1))
+    offset = np.array([0.05, 0.0, 0.0])  # the small part's mesh sits off its frame's origin
+    surface = HumanSurface(("a", "b"), [big.vertices, small.vertices + offset], [big.faces, small.faces])
+    rot = so3_exp(np.array([0.0, 0.0, np.pi / 2]))  # part b turned 90° about z: its offset points along y
+    pos = np.array([[[0.0, 0.0, 1.0], [1.0, 0.0, 1.0]]])
+    quat = np.stack([matrix_to_quat(np.eye(3)), matrix_to_quat(rot)])[None]
+    com = surface.centre_of_mass(pos, quat)
+    centre_b = pos[0, 1] + rot @ offset
+    np.testing.assert_allclose(com[0], (8 * pos[0, 0] + centre_b) / 9, atol=1e-12)
+    assert com.shape == (1, 3)
+
+
+def test_the_first_solve_holds_the_person_com_where_asked():
+    """``problem_from_config`` gives the first solve the person's COM (low-passed, × the mode's
+    scale) as a horizontal target with its weight and offset rate; weight 0 gives none."""
+    from retarget.clip import problem_from_config
+    from retarget.solver.problem import mode_scale, resample_demonstration
+
+    demo = resample_demonstration(clip("walk", 0, 45), FPS)
+    person = demo.surface.centre_of_mass(demo.part_pos_w, demo.part_quat_w)
+    cfg = RetargetConfig(balance=BalanceConfig(person_com_weight=1e4))  # configs/retarget/executable.yaml's
+    problem = problem_from_config(demo, cfg)
+    assert problem.com_weights.tolist() == [cfg.balance.person_com_weight] * 2 + [0.0]
+    assert problem.com_offset_rate == cfg.balance.person_offset_rate > 0
+    np.testing.assert_allclose(problem.com_target, balance_target(person, FPS, cfg.balance))
+    scaled = problem_from_config(demo, RetargetConfig(mode="scaled", balance=cfg.balance))
+    np.testing.assert_allclose(scaled.com_target, balance_target(person * mode_scale(demo, "scaled"), FPS,
+                                                                 cfg.balance))
+    off = problem_from_config(demo, RetargetConfig())  # the default: off
+    assert off.com_target is None and off.com_weights.tolist() == [0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match="person_com_weight"):
+        problem_from_config(demo, RetargetConfig(balance=BalanceConfig(person_com_weight=-1.0)))

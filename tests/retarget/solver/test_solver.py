@@ -311,7 +311,7 @@ def test_a_hand_that_holds_in_the_demonstration_is_pulled_in_from_beyond_the_gri
     pairs, _ = _robot_channel(problem, state, targets, fr, centre_w, c, _ConstraintRows([], []))
     assert pairs is not None and not pairs.query.in_band.any()  # every pair is demonstrated, none in the band
     selection = _select_contact_rows(problem, targets, [pairs])
-    rows = _contact_state_rows(problem, fr, [pairs], selection)[0]
+    rows = _contact_state_rows(problem, fr, [pairs], selection)[0][0]  # (rows out of state per pair set, ...)
     names = np.array(robot.BODY_NAMES)[rows.body_a]
     hands = np.char.startswith(names, "left_wrist") | np.char.startswith(names, "right_wrist")
     # both hands held the box in these frames: a row on each (at the hand unit's closest probe)
