@@ -81,9 +81,9 @@ class BalanceConfig:
     #: their motion over their feet and the G1's feet stand where theirs did, so the person's
     #: smooth COM path is one the G1's contacts can carry, with no second solve. 1e4 in
     #: ``configs/retarget/executable.yaml`` (docs/results/feasibility.md, *Refused steps and the
-    #: person's centre of mass*); off by default: the G1 then keeps its offset from the person's
-    #: COM, and where its shorter arms must lean further than the person to put a box down, its
-    #: hands leave the box (a synthetic placing clip: hand contact on 48 % of the frames).
+    #: person's centre of mass*); off by default: on a synthetic clip that puts a box down on a
+    #: table the hands leave the box (contact on 48 % of the frames), at 1e3-1e4 even with the
+    #: G1's own low-passed COM path as the target.
     person_com_weight: float = 0.0
     #: Rate (per frame) at which the G1's offset from the person's COM is followed
     #: (``Problem.com_offset_rate``; 0: the person's COM itself is the target).
